@@ -1,0 +1,1 @@
+# Makes `import mcdenoise_train` work when pytest runs from training/.

@@ -1,0 +1,1 @@
+"""Python side of mcdenoise: the network, its training and export, and the data generator."""
