@@ -1,0 +1,272 @@
+//! The offline commands: denoise one file, or write the preprocessed tensors of one file
+//! for training.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use ndarray::{Array0, Array3};
+use serde_json::json;
+
+use crate::engine::{self, preprocess, Engine, EngineConfig, Rect, Variant, EPS};
+use crate::frame::{self, Buffer, Frame, Limits, OutputLayer};
+use crate::metrics::Metrics;
+
+/// Options shared by the commands that read frames.
+#[derive(Args, Debug, Clone)]
+pub struct FrameArgs {
+    /// Largest accepted frame, in pixels.
+    #[arg(long, env = "MCDENOISE_MAX_PIXELS", default_value_t = Limits::default().max_pixels)]
+    pub max_pixels: u64,
+}
+
+impl FrameArgs {
+    fn limits(&self) -> Limits {
+        Limits { max_pixels: self.max_pixels }
+    }
+}
+
+/// Which model variant to use.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, Default)]
+pub enum VariantArg {
+    /// `full` if the frame has covariance, else `nocov`.
+    #[default]
+    Auto,
+    Full,
+    Nocov,
+}
+
+impl VariantArg {
+    fn resolve(self) -> Option<Variant> {
+        match self {
+            VariantArg::Auto => None,
+            VariantArg::Full => Some(Variant::Full),
+            VariantArg::Nocov => Some(Variant::Nocov),
+        }
+    }
+}
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    /// Noisy frame (multi-layer OpenEXR, see docs/frame-layout.md).
+    pub input: PathBuf,
+    /// Where to write the denoised EXR.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Reference frame: prints RelMSE, DSSIM, PSNR and SMAPE of input and output.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// Directory with the model variants (`full/`, `nocov/`).
+    #[arg(long, env = "MCDENOISE_MODELS", default_value = "models")]
+    pub models: PathBuf,
+    /// Tile side in pixels (0: whole frame at once).
+    #[arg(long, env = "MCDENOISE_TILE", default_value_t = 256)]
+    pub tile: usize,
+    /// Threads for inference and processing (default: all cores).
+    #[arg(long, env = "MCDENOISE_THREADS")]
+    pub threads: Option<usize>,
+    /// Extra layers to write besides R,G,B: `diffuse`, `specular` (comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    pub layers: Vec<String>,
+    #[arg(long, value_enum, default_value_t)]
+    pub variant: VariantArg,
+    /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
+    #[arg(long, env = "ORT_DYLIB_PATH")]
+    pub ort_library: Option<PathBuf>,
+    #[command(flatten)]
+    pub frame: FrameArgs,
+}
+
+#[derive(Args, Debug)]
+pub struct PreprocessArgs {
+    /// Noisy frame.
+    pub input: PathBuf,
+    /// Output `.npz` (float32 arrays; keys in docs/frame-layout.md).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Reference frame: adds the training targets.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t)]
+    pub variant: VariantArg,
+    #[command(flatten)]
+    pub frame: FrameArgs,
+}
+
+fn read(path: &Path, limits: &Limits, reference: bool) -> Result<Frame> {
+    let bytes = fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let frame =
+        if reference { Frame::reference_from_exr_bytes(&bytes, limits) } else { Frame::from_exr_bytes(&bytes, limits) };
+    frame.with_context(|| format!("{}: invalid frame", path.display()))
+}
+
+fn check_same_size(frame: &Frame, reference: &Frame) -> Result<()> {
+    if (frame.width, frame.height) != (reference.width, reference.height) {
+        bail!(
+            "reference is {}x{} but the frame is {}x{}",
+            reference.width,
+            reference.height,
+            frame.width,
+            frame.height
+        );
+    }
+    Ok(())
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// Writes a file atomically: to a temporary name beside it, then renamed.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension(format!("{}.part", path.extension().and_then(|e| e.to_str()).unwrap_or("tmp")));
+    fs::write(&tmp, bytes).with_context(|| format!("cannot write {}", tmp.display()))?;
+    fs::rename(&tmp, path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
+}
+
+/// `mcdenoise run`: denoise one frame, print a JSON report on stdout.
+pub fn run(args: RunArgs) -> Result<()> {
+    let total = Instant::now();
+    for layer in &args.layers {
+        if layer != "diffuse" && layer != "specular" {
+            bail!("unknown layer `{layer}` (expected diffuse or specular)");
+        }
+    }
+    let mut config = EngineConfig::new(&args.models);
+    config.tile = args.tile;
+    if let Some(t) = args.threads {
+        config.threads = t;
+    }
+    config.ort_library = args.ort_library.clone();
+
+    let t = Instant::now();
+    let mut engine = Engine::load(&config)?;
+    let load_ms = ms(t);
+
+    let limits = args.frame.limits();
+    let t = Instant::now();
+    let frame = read(&args.input, &limits, false)?;
+    let reference = args.reference.as_deref().map(|p| read(p, &limits, true)).transpose()?;
+    if let Some(r) = &reference {
+        check_same_size(&frame, r)?;
+    }
+    let decode_ms = ms(t);
+
+    let out = engine.denoise(&frame, args.variant.resolve(), &mut |p| {
+        tracing::debug!(tile = p.tiles_done, of = p.tiles_total, "tile done");
+        true
+    })?;
+
+    let t = Instant::now();
+    let mut layers = vec![OutputLayer { prefix: "", planes: [&out.color[0], &out.color[1], &out.color[2]] }];
+    if args.layers.iter().any(|l| l == "diffuse") {
+        layers.push(OutputLayer { prefix: "diffuse", planes: [&out.diffuse[0], &out.diffuse[1], &out.diffuse[2]] });
+    }
+    if args.layers.iter().any(|l| l == "specular") {
+        layers.push(OutputLayer { prefix: "specular", planes: [&out.specular[0], &out.specular[1], &out.specular[2]] });
+    }
+    let bytes = frame::write_exr(out.width, out.height, &layers).context("cannot encode the result")?;
+    write_atomic(&args.output, &bytes)?;
+    let encode_ms = ms(t);
+
+    let metrics = reference.as_ref().map(|r| {
+        let rc = r.color();
+        let rgb = [&rc[0][..], &rc[1][..], &rc[2][..]];
+        let noisy = frame.color();
+        json!({
+            "input": Metrics::compute([&noisy[0], &noisy[1], &noisy[2]], rgb, frame.width, frame.height),
+            "output": Metrics::compute([&out.color[0], &out.color[1], &out.color[2]], rgb, frame.width, frame.height),
+        })
+    });
+    let flops = engine.flops_per_pixel(out.variant).unwrap_or(0.0);
+    let report = json!({
+        "input": args.input,
+        "output": args.output,
+        "width": out.width,
+        "height": out.height,
+        "variant": out.variant,
+        "tiles": out.tiles,
+        "tile": args.tile,
+        "threads": config.threads,
+        "flops_per_pixel": flops,
+        "sanitized": frame.sanitized,
+        "timings_ms": {
+            "load_models": load_ms,
+            "decode": decode_ms,
+            "preprocess": out.timings.preprocess.as_secs_f64() * 1e3,
+            "inference": out.timings.inference.as_secs_f64() * 1e3,
+            "reconstruction": out.timings.reconstruction.as_secs_f64() * 1e3,
+            "encode": encode_ms,
+            "total": ms(total),
+        },
+        "inference_gflops_per_s": flops * (out.width * out.height) as f64 / out.timings.inference.as_secs_f64().max(1e-9) / 1e9,
+        "metrics": metrics,
+    });
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+/// `mcdenoise preprocess`: the network inputs (and training targets) of one frame as `.npz`.
+pub fn preprocess(args: PreprocessArgs) -> Result<()> {
+    let limits = args.frame.limits();
+    let mut frame = read(&args.input, &limits, false)?;
+    let reference = args.reference.as_deref().map(|p| read(p, &limits, true)).transpose()?;
+    if let Some(r) = &reference {
+        check_same_size(&frame, r)?;
+    }
+    let variant = match args.variant.resolve() {
+        Some(Variant::Full) if !frame.has(Buffer::Covariance) => {
+            bail!("{}: --variant full needs a `covariance` channel", args.input.display())
+        }
+        Some(v) => v,
+        None if frame.has(Buffer::Covariance) => Variant::Full,
+        None => Variant::Nocov,
+    };
+    if variant == Variant::Nocov {
+        frame.remove(Buffer::Covariance);
+    }
+    let (w, h) = (frame.width, frame.height);
+    let stats = engine::FrameStats::of(&frame);
+    let inputs = preprocess::preprocess(&frame, &stats, variant, Rect { x: 0, y: 0, w, h });
+
+    let shaped = |v: Vec<f32>| -> Result<Array3<f32>> {
+        let c = v.len() / (w * h);
+        Ok(Array3::from_shape_vec((c, h, w), v)?)
+    };
+    let stack = |planes: [&[f32]; 3]| -> Vec<f32> { planes.concat() };
+    let albedo = frame.planes(Buffer::Albedo);
+    let noisy = frame.diffuse_plus_specular();
+
+    let tmp = args.output.with_extension("npz.part");
+    let file = fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
+    let mut npz = ndarray_npy::NpzWriter::new(file);
+    npz.add_array("diffuse_color", &shaped(inputs.diffuse)?)?;
+    npz.add_array("specular_color", &shaped(inputs.specular)?)?;
+    npz.add_array("features", &shaped(inputs.features)?)?;
+    npz.add_array("albedo", &shaped(stack([&albedo[0], &albedo[1], &albedo[2]]))?)?;
+    npz.add_array("noisy", &shaped(stack([&noisy[0], &noisy[1], &noisy[2]]))?)?;
+    npz.add_array("variant", &Array0::from_elem((), i32::from(variant == Variant::Full)))?;
+    if let Some(r) = &reference {
+        if !(r.has(Buffer::Diffuse) && r.has(Buffer::Specular)) {
+            bail!("the reference needs diffuse.* and specular.* channels for training targets");
+        }
+        let d_target: Vec<f32> = (0..3)
+            .flat_map(|c| {
+                r.plane(Buffer::Diffuse, c).iter().zip(&albedo[c]).map(|(d, a)| d / (a + EPS)).collect::<Vec<_>>()
+            })
+            .collect();
+        let s_target: Vec<f32> = (0..3)
+            .flat_map(|c| r.plane(Buffer::Specular, c).iter().map(|s| s.max(0.0).ln_1p()).collect::<Vec<_>>())
+            .collect();
+        let rc = r.color();
+        npz.add_array("diffuse_target", &shaped(d_target)?)?;
+        npz.add_array("specular_target", &shaped(s_target)?)?;
+        npz.add_array("reference", &shaped(stack([&rc[0], &rc[1], &rc[2]]))?)?;
+    }
+    npz.finish()?;
+    fs::rename(&tmp, &args.output).with_context(|| format!("cannot rename to {}", args.output.display()))?;
+    eprintln!("wrote {} ({}x{}, variant {})", args.output.display(), w, h, variant.name());
+    Ok(())
+}

@@ -1,0 +1,223 @@
+//! The KPCN preprocessing (Bako et al. 2017, Lin et al. 2020) of a frame region into the
+//! networks' input tensors. `docs/frame-layout.md` has the math; this is the single
+//! implementation of it (training reads its output through `mcdenoise preprocess`).
+//!
+//! Regions are preprocessed independently: per-frame statistics ([`FrameStats`]) are
+//! computed once, and gradients at a region's border read the neighbouring pixels of the
+//! frame, so a tile's tensors equal the same pixels of the whole frame's.
+
+use rayon::prelude::*;
+
+use super::contract::{Variant, COLOR_CHANNELS};
+use crate::frame::{Buffer, Frame};
+
+/// Added to albedo before dividing the diffuse color by it (KPCN's value).
+pub const EPS: f32 = 0.00316;
+
+/// Rec. 709 luminance, used to reduce three-channel variances to one.
+pub fn luminance(r: f32, g: f32, b: f32) -> f32 {
+    0.2126 * r + 0.7152 * g + 0.0722 * b
+}
+
+/// A rectangle of the frame, in pixels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Rect {
+    pub x: usize,
+    pub y: usize,
+    pub w: usize,
+    pub h: usize,
+}
+
+impl Rect {
+    pub fn pixels(&self) -> usize {
+        self.w * self.h
+    }
+}
+
+/// Statistics of the whole frame that the per-frame scalings need.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameStats {
+    /// Largest depth of the frame.
+    pub depth_max: f32,
+    /// Largest covariance of the frame (0 without covariance).
+    pub covariance_max: f32,
+}
+
+impl FrameStats {
+    pub fn of(frame: &Frame) -> FrameStats {
+        let max = |p: &[f32]| p.iter().copied().fold(0f32, f32::max);
+        FrameStats {
+            depth_max: max(frame.plane(Buffer::Depth, 0)),
+            covariance_max: if frame.has(Buffer::Covariance) { max(frame.plane(Buffer::Covariance, 0)) } else { 0.0 },
+        }
+    }
+}
+
+/// Network inputs for one region, planar `[channels][h][w]`.
+pub struct Inputs {
+    pub rect: Rect,
+    /// `color` input of the diffuse network (10 channels; the first 3 are `d'`).
+    pub diffuse: Vec<f32>,
+    /// `color` input of the specular network (10 channels; the first 3 are `s'`).
+    pub specular: Vec<f32>,
+    /// `features` input, shared by both networks (28 or 24 channels).
+    pub features: Vec<f32>,
+}
+
+/// `x / m` with `x` clamped to `[0, m]`, or 0 where `m` is 0.
+fn scaled(x: f32, m: f32) -> f32 {
+    if m > 0.0 {
+        x.clamp(0.0, m) / m
+    } else {
+        0.0
+    }
+}
+
+/// Preprocesses `rect` of `frame` for `variant`.
+///
+/// # Panics
+/// If `variant` is `Full` and the frame has no covariance (callers pick the variant from the
+/// frame), or if `rect` is not inside the frame.
+pub fn preprocess(frame: &Frame, stats: &FrameStats, variant: Variant, rect: Rect) -> Inputs {
+    assert!(rect.x + rect.w <= frame.width && rect.y + rect.h <= frame.height, "region outside the frame");
+    let n = rect.pixels();
+    let mut diffuse = vec![0f32; COLOR_CHANNELS * n];
+    let mut specular = vec![0f32; COLOR_CHANNELS * n];
+    let mut features = vec![0f32; variant.feature_channels() * n];
+
+    let albedo = frame.planes(Buffer::Albedo);
+    // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)².
+    {
+        let d = frame.planes(Buffer::Diffuse);
+        let [base, var, gx, gy] = color_layout(&mut diffuse, n);
+        for c in 0..3 {
+            let (d, a) = (&d[c], &albedo[c]);
+            with_gradients(
+                frame,
+                rect,
+                |i| d[i] / (a[i] + EPS),
+                &mut base[c * n..][..n],
+                &mut gx[c * n..][..n],
+                &mut gy[c * n..][..n],
+            );
+        }
+        per_pixel(frame, rect, var, |i| {
+            let v = |c: usize| frame.plane(Buffer::DiffuseVariance, c)[i] / (albedo[c][i] + EPS).powi(2);
+            luminance(v(0), v(1), v(2))
+        });
+    }
+    // Specular color: ln(1 + s); variance scaled by 1 / (1 + s)² (delta method).
+    {
+        let s = frame.planes(Buffer::Specular);
+        let [base, var, gx, gy] = color_layout(&mut specular, n);
+        for c in 0..3 {
+            let s = &s[c];
+            with_gradients(
+                frame,
+                rect,
+                |i| s[i].max(0.0).ln_1p(),
+                &mut base[c * n..][..n],
+                &mut gx[c * n..][..n],
+                &mut gy[c * n..][..n],
+            );
+        }
+        per_pixel(frame, rect, var, |i| {
+            let v = |c: usize| frame.plane(Buffer::SpecularVariance, c)[i] / (1.0 + s[c][i].max(0.0)).powi(2);
+            luminance(v(0), v(1), v(2))
+        });
+    }
+    // Features: normal (3), albedo (3), depth, [covariance]; their variances; gx; gy.
+    {
+        let base_count = if variant.uses_covariance() { 8 } else { 7 };
+        let var_count = base_count - 4;
+        let (base, rest) = features.split_at_mut(base_count * n);
+        let (vars, rest) = rest.split_at_mut(var_count * n);
+        let (gx, gy) = rest.split_at_mut(base_count * n);
+        let normal = frame.planes(Buffer::Normal);
+        let depth = frame.plane(Buffer::Depth, 0);
+        let mut k = 0;
+        let mut emit = |f: &(dyn Fn(usize) -> f32 + Sync)| {
+            with_gradients(frame, rect, f, &mut base[k * n..][..n], &mut gx[k * n..][..n], &mut gy[k * n..][..n]);
+            k += 1;
+        };
+        for plane in normal {
+            emit(&|i| plane[i]);
+        }
+        for plane in albedo {
+            emit(&|i| plane[i]);
+        }
+        emit(&|i| scaled(depth[i], stats.depth_max));
+        if variant.uses_covariance() {
+            let cov = frame.plane(Buffer::Covariance, 0);
+            emit(&|i| scaled(cov[i], stats.covariance_max));
+        }
+
+        let mut var_buffers = vec![
+            (Buffer::NormalVariance, 1.0),
+            (Buffer::AlbedoVariance, 1.0),
+            (Buffer::DepthVariance, inverse_square(stats.depth_max)),
+        ];
+        if variant.uses_covariance() {
+            var_buffers.push((Buffer::CovarianceVariance, inverse_square(stats.covariance_max)));
+        }
+        for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {
+            per_pixel(frame, rect, &mut vars[j * n..][..n], |i| {
+                let v = |c: usize| frame.plane(buffer, c)[i];
+                luminance(v(0), v(1), v(2)) * scale
+            });
+        }
+    }
+    Inputs { rect, diffuse, specular, features }
+}
+
+fn inverse_square(m: f32) -> f32 {
+    if m > 0.0 {
+        1.0 / (m * m)
+    } else {
+        0.0
+    }
+}
+
+/// Splits a 10-channel color tensor into its color (3), variance (1), gx (3) and gy (3) parts.
+fn color_layout(t: &mut [f32], n: usize) -> [&mut [f32]; 4] {
+    let (base, rest) = t.split_at_mut(3 * n);
+    let (var, rest) = rest.split_at_mut(n);
+    let (gx, gy) = rest.split_at_mut(3 * n);
+    [base, var, gx, gy]
+}
+
+/// Fills `out` (the rect's pixels, row-major) with `f` of each pixel's frame index.
+fn per_pixel(frame: &Frame, rect: Rect, out: &mut [f32], f: impl Fn(usize) -> f32 + Sync) {
+    out.par_chunks_mut(rect.w).enumerate().for_each(|(row, out)| {
+        let start = (rect.y + row) * frame.width + rect.x;
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = f(start + x);
+        }
+    });
+}
+
+/// Fills `base` with `f` and `gx`, `gy` with its forward differences, 0 past the frame's
+/// last column / row.
+fn with_gradients(
+    frame: &Frame,
+    rect: Rect,
+    f: impl Fn(usize) -> f32 + Sync,
+    base: &mut [f32],
+    gx: &mut [f32],
+    gy: &mut [f32],
+) {
+    let (fw, fh) = (frame.width, frame.height);
+    base.par_chunks_mut(rect.w).zip(gx.par_chunks_mut(rect.w)).zip(gy.par_chunks_mut(rect.w)).enumerate().for_each(
+        |(row, ((base, gx), gy))| {
+            let y = rect.y + row;
+            for x in 0..rect.w {
+                let fx = rect.x + x;
+                let i = y * fw + fx;
+                let v = f(i);
+                base[x] = v;
+                gx[x] = if fx + 1 < fw { f(i + 1) - v } else { 0.0 };
+                gy[x] = if y + 1 < fh { f(i + fw) - v } else { 0.0 };
+            }
+        },
+    );
+}

@@ -1,0 +1,135 @@
+//! OpenEXR reading into named planes, and writing of results.
+//!
+//! Headers are read and checked (size limit, deep data, subsampling) before any pixel is
+//! decompressed, so a small file that declares a huge image is refused cheaply.
+
+use std::io::Cursor;
+
+use exr::prelude::*;
+
+use super::{FrameError, Limits, NamedPlanes, Plane};
+
+/// Reads every channel of every part: `(width, height, [(full name, plane)])`.
+///
+/// In a multi-part file a channel's full name is `<part name>.<channel>`, unless the
+/// channel name already starts with the part name.
+pub(super) fn read_planes(
+    bytes: &[u8],
+    limits: &Limits,
+) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
+    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false).map_err(map_exr_error)?;
+    let mut size: Option<(String, (usize, usize))> = None;
+    for header in meta.headers.iter() {
+        let part = header.own_attributes.layer_name.as_ref().map(|t| t.to_string()).unwrap_or_default();
+        if header.deep {
+            return Err(FrameError::Deep(if part.is_empty() { "0".into() } else { part }));
+        }
+        let (w, h) = (header.layer_size.0, header.layer_size.1);
+        let pixels = w as u64 * h as u64;
+        if pixels > limits.max_pixels {
+            return Err(FrameError::TooLarge { width: w, height: h, pixels, limit: limits.max_pixels });
+        }
+        for ch in header.channels.list.iter() {
+            let name = full_name(&part, &ch.name.to_string());
+            if ch.sampling != Vec2(1, 1) {
+                return Err(FrameError::Subsampled(name));
+            }
+            match &size {
+                None => size = Some((name, (w, h))),
+                Some((reference, expected)) if *expected != (w, h) => {
+                    return Err(FrameError::SizeMismatch {
+                        channel: name,
+                        size: (w, h),
+                        reference: reference.clone(),
+                        expected: *expected,
+                    })
+                }
+                Some(_) => {}
+            }
+        }
+    }
+    let Some((_, (width, height))) = size else {
+        return Err(FrameError::MissingChannels { missing: vec!["any channel".into()], available: vec![] });
+    };
+    if width == 0 || height == 0 {
+        return Err(FrameError::Empty { width, height });
+    }
+
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .non_parallel()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(map_exr_error)?;
+
+    let mut planes: NamedPlanes = Vec::new();
+    for layer in image.layer_data {
+        let part = layer.attributes.layer_name.as_ref().map(|t| t.to_string()).unwrap_or_default();
+        for channel in layer.channel_data.list {
+            let name = full_name(&part, &channel.name.to_string());
+            if planes.iter().any(|(n, _)| *n == name) {
+                return Err(FrameError::DuplicateChannel(name));
+            }
+            let plane: Plane = match channel.sample_data {
+                FlatSamples::F16(v) => v.into_iter().map(f16::to_f32).collect(),
+                FlatSamples::F32(v) => v,
+                FlatSamples::U32(v) => v.into_iter().map(|x| x as f32).collect(),
+            };
+            if plane.len() != width * height {
+                return Err(FrameError::Corrupt(format!(
+                    "channel {name} holds {} samples, expected {}",
+                    plane.len(),
+                    width * height
+                )));
+            }
+            planes.push((name, plane));
+        }
+    }
+    Ok((width, height, planes))
+}
+
+fn full_name(part: &str, channel: &str) -> String {
+    if part.is_empty() || channel.starts_with(&format!("{part}.")) {
+        channel.to_string()
+    } else {
+        format!("{part}.{channel}")
+    }
+}
+
+fn map_exr_error(e: exr::error::Error) -> FrameError {
+    use exr::error::Error as E;
+    match e {
+        E::Io(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => FrameError::Truncated(io.to_string()),
+        E::Io(io) => FrameError::Corrupt(io.to_string()),
+        E::Invalid(msg) => FrameError::Corrupt(msg.to_string()),
+        E::NotSupported(msg) => FrameError::Unsupported(msg.to_string()),
+        E::Aborted => FrameError::Corrupt("reading was aborted".into()),
+    }
+}
+
+/// One RGB layer of an output file: `prefix` `""` writes `R,G,B`, `"diffuse"` writes
+/// `diffuse.R,diffuse.G,diffuse.B`.
+pub struct OutputLayer<'a> {
+    pub prefix: &'a str,
+    pub planes: [&'a [f32]; 3],
+}
+
+/// Encodes layers as a single-part float32 EXR (ZIP compression, lossless), in memory.
+pub fn write_exr(width: usize, height: usize, layers: &[OutputLayer<'_>]) -> exr::error::Result<Vec<u8>> {
+    let mut list = smallvec::SmallVec::<[AnyChannel<FlatSamples>; 4]>::new();
+    for layer in layers {
+        for (c, suffix) in ["R", "G", "B"].into_iter().enumerate() {
+            let name = if layer.prefix.is_empty() { suffix.to_string() } else { format!("{}.{suffix}", layer.prefix) };
+            list.push(AnyChannel::new(name.as_str(), FlatSamples::F32(layer.planes[c].to_vec())));
+        }
+    }
+    let channels = AnyChannels::sort(list);
+    let image =
+        Image::from_layer(Layer::new((width, height), LayerAttributes::default(), Encoding::SMALL_LOSSLESS, channels));
+    let mut out = Cursor::new(Vec::new());
+    image.write().non_parallel().to_buffered(&mut out)?;
+    Ok(out.into_inner())
+}

@@ -1,0 +1,208 @@
+//! A frame: the planar f32 buffers of one rendered image, read from OpenEXR and validated.
+//!
+//! See `docs/frame-layout.md` for the channel names and what each buffer means.
+
+mod exr_io;
+pub mod layout;
+
+pub use exr_io::{write_exr, OutputLayer};
+pub use layout::{Buffer, BUFFER_COUNT};
+
+use serde::Serialize;
+
+/// One channel of a frame, row-major, `width * height` samples.
+pub type Plane = Vec<f32>;
+
+/// Planes with their full channel names, as read from a file.
+pub type NamedPlanes = Vec<(String, Plane)>;
+
+/// Limits applied while reading a frame, before any pixel data is decompressed.
+#[derive(Clone, Copy, Debug)]
+pub struct Limits {
+    /// Largest accepted `width * height`.
+    pub max_pixels: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        // 8K UHD (7680×4320): larger frames are almost certainly a mistake or an attack.
+        Limits { max_pixels: 7680 * 4320 }
+    }
+}
+
+/// Why a frame was refused. Every variant names what is wrong.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum FrameError {
+    #[error("missing channels: {} (the file has: {})", missing.join(", "), available_summary(available))]
+    MissingChannels { missing: Vec<String>, available: Vec<String> },
+    #[error("channel {channel} is {}x{} but {reference} is {}x{}", size.0, size.1, expected.0, expected.1)]
+    SizeMismatch { channel: String, size: (usize, usize), reference: String, expected: (usize, usize) },
+    #[error("channel {0} appears more than once")]
+    DuplicateChannel(String),
+    #[error("channel {0} is subsampled; only full-resolution channels are supported")]
+    Subsampled(String),
+    #[error("image is empty ({width}x{height})")]
+    Empty { width: usize, height: usize },
+    #[error("image is {width}x{height} = {pixels} pixels, over the limit of {limit}")]
+    TooLarge { width: usize, height: usize, pixels: u64, limit: u64 },
+    #[error("deep data is not supported (part {0})")]
+    Deep(String),
+    #[error("truncated EXR: {0}")]
+    Truncated(String),
+    #[error("not a valid EXR: {0}")]
+    Corrupt(String),
+    #[error("unsupported EXR feature: {0}")]
+    Unsupported(String),
+}
+
+fn available_summary(names: &[String]) -> String {
+    const SHOWN: usize = 40;
+    if names.is_empty() {
+        return "no channels".into();
+    }
+    let mut s = names.iter().take(SHOWN).cloned().collect::<Vec<_>>().join(", ");
+    if names.len() > SHOWN {
+        s.push_str(&format!(", … {} more", names.len() - SHOWN));
+    }
+    s
+}
+
+/// Non-finite samples replaced by 0, per buffer.
+#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+pub struct Sanitized {
+    pub total: u64,
+    /// Buffer name → count, only buffers with replacements.
+    pub by_buffer: std::collections::BTreeMap<String, u64>,
+}
+
+/// A validated frame: every required buffer present, all of one size, all samples finite.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub width: usize,
+    pub height: usize,
+    /// Indexed by `Buffer as usize`: 3 planes for colors, 1 or 3 for variances, 1 for depth
+    /// and covariance.
+    buffers: [Option<Vec<Plane>>; BUFFER_COUNT],
+    pub sanitized: Sanitized,
+}
+
+impl Frame {
+    /// Builds a frame from named planes (already of one size), checking that the required
+    /// buffers are present and replacing non-finite samples.
+    pub fn from_planes(
+        width: usize,
+        height: usize,
+        mut planes: NamedPlanes,
+        required: &[Buffer],
+    ) -> Result<Frame, FrameError> {
+        if width == 0 || height == 0 {
+            return Err(FrameError::Empty { width, height });
+        }
+        let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
+        let resolved = layout::resolve(&names);
+        let missing: Vec<String> = required
+            .iter()
+            .filter(|b| resolved[**b as usize].is_none())
+            .flat_map(|b| layout::spec(*b).alternatives[0].iter().map(|s| s.to_string()))
+            .collect();
+        if !missing.is_empty() {
+            let mut available: Vec<String> = names.iter().map(|s| s.to_string()).collect();
+            available.sort();
+            return Err(FrameError::MissingChannels { missing, available });
+        }
+        let mut buffers: [Option<Vec<Plane>>; BUFFER_COUNT] = Default::default();
+        let mut sanitized = Sanitized::default();
+        for buffer in Buffer::ALL {
+            let Some(indices) = &resolved[buffer as usize] else { continue };
+            let mut count = 0u64;
+            let mut taken = Vec::with_capacity(indices.len());
+            for &i in indices {
+                let mut plane = std::mem::take(&mut planes[i].1);
+                for v in plane.iter_mut() {
+                    if !v.is_finite() {
+                        *v = 0.0;
+                        count += 1;
+                    }
+                }
+                taken.push(plane);
+            }
+            if count > 0 {
+                sanitized.total += count;
+                sanitized.by_buffer.insert(buffer.name().to_string(), count);
+            }
+            buffers[buffer as usize] = Some(taken);
+        }
+        Ok(Frame { width, height, buffers, sanitized })
+    }
+
+    pub fn pixels(&self) -> usize {
+        self.width * self.height
+    }
+
+    pub fn has(&self, buffer: Buffer) -> bool {
+        self.buffers[buffer as usize].is_some()
+    }
+
+    /// All planes of a buffer.
+    ///
+    /// # Panics
+    /// If the buffer is absent; required buffers are always present.
+    pub fn planes(&self, buffer: Buffer) -> &[Plane] {
+        self.buffers[buffer as usize]
+            .as_deref()
+            .unwrap_or_else(|| panic!("buffer {} is absent; check Frame::has first", buffer.name()))
+    }
+
+    /// Plane `c` of a buffer; a one-plane buffer (a mono variance) answers for every `c`.
+    pub fn plane(&self, buffer: Buffer, c: usize) -> &[f32] {
+        let planes = self.planes(buffer);
+        &planes[c.min(planes.len() - 1)]
+    }
+
+    /// Drops a buffer (e.g. covariance, to run the no-covariance model on a full frame).
+    pub fn remove(&mut self, buffer: Buffer) {
+        self.buffers[buffer as usize] = None;
+    }
+
+    /// The frame's total radiance: `R,G,B` if present, else diffuse + specular.
+    pub fn color(&self) -> [Plane; 3] {
+        if self.has(Buffer::Color) {
+            let p = self.planes(Buffer::Color);
+            return [p[0].clone(), p[1].clone(), p[2].clone()];
+        }
+        self.diffuse_plus_specular()
+    }
+
+    /// Diffuse + specular, per channel.
+    pub fn diffuse_plus_specular(&self) -> [Plane; 3] {
+        std::array::from_fn(|c| {
+            let d = self.plane(Buffer::Diffuse, c);
+            let s = self.plane(Buffer::Specular, c);
+            d.iter().zip(s).map(|(a, b)| a + b).collect()
+        })
+    }
+
+    /// Reads and validates a frame from the bytes of an EXR file.
+    pub fn from_exr_bytes(bytes: &[u8], limits: &Limits) -> Result<Frame, FrameError> {
+        let (w, h, planes) = exr_io::read_planes(bytes, limits)?;
+        Frame::from_planes(w, h, planes, layout::REQUIRED)
+    }
+
+    /// Reads a reference frame: only a color is needed (`R,G,B`, or diffuse and specular).
+    pub fn reference_from_exr_bytes(bytes: &[u8], limits: &Limits) -> Result<Frame, FrameError> {
+        let (w, h, planes) = exr_io::read_planes(bytes, limits)?;
+        let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
+        let required: &[Buffer] = if layout::resolve(&names)[Buffer::Color as usize].is_some() {
+            &[Buffer::Color]
+        } else {
+            &[Buffer::Diffuse, Buffer::Specular]
+        };
+        Frame::from_planes(w, h, planes, required).map_err(|e| match e {
+            FrameError::MissingChannels { available, .. } => FrameError::MissingChannels {
+                missing: vec!["R, G, B (or diffuse.R/G/B and specular.R/G/B)".into()],
+                available,
+            },
+            other => other,
+        })
+    }
+}

@@ -1,0 +1,129 @@
+//! The `mcdenoise` binary end to end: run, preprocess, and its errors.
+
+mod common;
+
+use std::process::Command;
+
+use common::*;
+use mcdenoise::frame::{Buffer, Frame, Limits};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mcdenoise"))
+}
+
+fn write_frame(dir: &std::path::Path, name: &str, w: usize, h: usize, cov: bool) -> std::path::PathBuf {
+    let path = dir.join(name);
+    std::fs::write(&path, exr_single(w, h, &named_planes(w, h, cov), Sample::F32)).unwrap();
+    path
+}
+
+#[test]
+fn run_writes_the_denoised_exr_and_a_json_report() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = write_frame(tmp.path(), "in.exr", 40, 24, true);
+    let out = tmp.path().join("out.exr");
+    let res = bin()
+        .args(["run", input.to_str().unwrap(), "-o", out.to_str().unwrap(), "--reference", input.to_str().unwrap()])
+        .args([
+            "--models",
+            tiny_models().to_str().unwrap(),
+            "--tile",
+            "16",
+            "--threads",
+            "1",
+            "--layers",
+            "diffuse,specular",
+        ])
+        .output()
+        .unwrap();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap();
+    assert_eq!(report["variant"], "full");
+    assert_eq!(report["tiles"], 6);
+    for stage in ["decode", "preprocess", "inference", "reconstruction", "encode", "total"] {
+        assert!(report["timings_ms"][stage].as_f64().unwrap() >= 0.0, "{stage}");
+    }
+    // Against itself the input is perfect; the (random) network's output is not.
+    assert_eq!(report["metrics"]["input"]["relmse"], 0.0);
+    assert!(report["metrics"]["output"]["relmse"].as_f64().unwrap() > 0.0);
+
+    let frame = Frame::reference_from_exr_bytes(&std::fs::read(&out).unwrap(), &Limits::default()).unwrap();
+    assert_eq!((frame.width, frame.height), (40, 24));
+    assert!(frame.has(Buffer::Color) && frame.has(Buffer::Diffuse) && frame.has(Buffer::Specular));
+    assert!(!tmp.path().join("out.exr.part").exists());
+}
+
+#[test]
+fn preprocess_writes_the_documented_arrays() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = write_frame(tmp.path(), "in.exr", 12, 9, true);
+    let out = tmp.path().join("x.npz");
+    let res = bin()
+        .args([
+            "preprocess",
+            input.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--reference",
+            input.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+    let mut npz = ndarray_npy::NpzReader::new(std::fs::File::open(&out).unwrap()).unwrap();
+    let shape = |npz: &mut ndarray_npy::NpzReader<std::fs::File>, k: &str| -> Vec<usize> {
+        let a: ndarray::Array3<f32> = npz.by_name(k).unwrap();
+        a.shape().to_vec()
+    };
+    assert_eq!(shape(&mut npz, "diffuse_color"), [10, 9, 12]);
+    assert_eq!(shape(&mut npz, "specular_color"), [10, 9, 12]);
+    assert_eq!(shape(&mut npz, "features"), [28, 9, 12]);
+    for k in ["albedo", "noisy", "diffuse_target", "specular_target", "reference"] {
+        assert_eq!(shape(&mut npz, k), [3, 9, 12], "{k}");
+    }
+    // With itself as reference, the diffuse target is the input's own d / (a + ε).
+    let color: ndarray::Array3<f32> = npz.by_name("diffuse_color").unwrap();
+    let target: ndarray::Array3<f32> = npz.by_name("diffuse_target").unwrap();
+    assert_eq!(color.slice(ndarray::s![0..3, .., ..]), target);
+
+    let res = bin()
+        .args(["preprocess", input.to_str().unwrap(), "-o", out.to_str().unwrap(), "--variant", "nocov"])
+        .output()
+        .unwrap();
+    assert!(res.status.success());
+    let mut npz = ndarray_npy::NpzReader::new(std::fs::File::open(&out).unwrap()).unwrap();
+    assert_eq!(shape(&mut npz, "features"), [24, 9, 12]);
+}
+
+#[test]
+fn bad_input_is_reported_by_name() {
+    let tmp = tempfile::tempdir().unwrap();
+    let planes: Vec<_> = named_planes(8, 8, false).into_iter().filter(|(n, _)| n != "normal.G").collect();
+    let input = tmp.path().join("bad.exr");
+    std::fs::write(&input, exr_single(8, 8, &planes, Sample::F32)).unwrap();
+    let res = bin()
+        .args(["run", input.to_str().unwrap(), "-o", "/dev/null", "--models", tiny_models().to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert_eq!(res.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(err.contains("bad.exr: invalid frame: missing channels: normal.R, normal.G, normal.B"), "{err}");
+}
+
+#[test]
+fn a_missing_onnx_runtime_is_a_clear_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let input = write_frame(tmp.path(), "in.exr", 8, 8, true);
+    let res = bin()
+        .args(["run", input.to_str().unwrap(), "-o", tmp.path().join("o.exr").to_str().unwrap()])
+        .args(["--models", tiny_models().to_str().unwrap()])
+        .env("ORT_DYLIB_PATH", tmp.path().join("nowhere/libonnxruntime.so"))
+        .env("MCDENOISE_HOME", tmp.path())
+        .env("HOME", tmp.path())
+        .output()
+        .unwrap();
+    assert_eq!(res.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(err.contains("ONNX Runtime library not found") && err.contains("scripts/setup"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}

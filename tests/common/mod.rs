@@ -1,0 +1,125 @@
+//! Helpers shared by the integration tests: synthetic frames and EXR files.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+use exr::prelude::*;
+use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig};
+use mcdenoise::frame::{Buffer, Frame, NamedPlanes};
+
+/// A part of a multi-part file: name, size, channels.
+pub type Part<'a> = (&'a str, (usize, usize), NamedPlanes);
+
+pub fn tiny_models() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/tiny")
+}
+
+pub fn engine(tile: usize) -> Engine {
+    let mut config = EngineConfig::new(tiny_models());
+    config.tile = tile;
+    config.threads = 2;
+    Engine::load(&config).expect("tiny models load (is the ONNX Runtime library installed? run scripts/setup)")
+}
+
+/// The canonical channels of a synthetic frame, as named planes.
+pub fn named_planes(w: usize, h: usize, with_covariance: bool) -> Vec<(String, Vec<f32>)> {
+    let frame = synthetic_frame(w, h, with_covariance);
+    let mut out = Vec::new();
+    let rgb = |out: &mut Vec<(String, Vec<f32>)>, b: Buffer, base: &str| {
+        for (c, ch) in ["R", "G", "B"].into_iter().enumerate() {
+            out.push((format!("{base}.{ch}"), frame.plane(b, c).to_vec()));
+        }
+    };
+    rgb(&mut out, Buffer::Diffuse, "diffuse");
+    rgb(&mut out, Buffer::Specular, "specular");
+    rgb(&mut out, Buffer::Albedo, "albedo");
+    rgb(&mut out, Buffer::Normal, "normal");
+    out.push(("depth.Z".into(), frame.plane(Buffer::Depth, 0).to_vec()));
+    for (b, name) in [
+        (Buffer::DiffuseVariance, "diffuseVariance"),
+        (Buffer::SpecularVariance, "specularVariance"),
+        (Buffer::AlbedoVariance, "albedoVariance"),
+        (Buffer::NormalVariance, "normalVariance"),
+        (Buffer::DepthVariance, "depthVariance"),
+    ] {
+        out.push((format!("{name}.Z"), frame.plane(b, 0).to_vec()));
+    }
+    if with_covariance {
+        out.push(("covariance".into(), frame.plane(Buffer::Covariance, 0).to_vec()));
+        out.push(("covarianceVariance.Z".into(), frame.plane(Buffer::CovarianceVariance, 0).to_vec()));
+    }
+    out
+}
+
+/// Sample type of written channels.
+#[derive(Clone, Copy)]
+pub enum Sample {
+    F16,
+    F32,
+}
+
+fn channel(name: &str, data: &[f32], sample: Sample) -> AnyChannel<FlatSamples> {
+    let samples = match sample {
+        Sample::F32 => FlatSamples::F32(data.to_vec()),
+        Sample::F16 => FlatSamples::F16(data.iter().map(|v| f16::from_f32(*v)).collect()),
+    };
+    AnyChannel::new(name, samples)
+}
+
+/// A single-part EXR holding `planes`.
+pub fn exr_single(w: usize, h: usize, planes: &[(String, Vec<f32>)], sample: Sample) -> Vec<u8> {
+    let list: SmallVec<[AnyChannel<FlatSamples>; 4]> = planes.iter().map(|(n, d)| channel(n, d, sample)).collect();
+    let image = Image::from_layer(Layer::new(
+        (w, h),
+        LayerAttributes::default(),
+        Encoding::FAST_LOSSLESS,
+        AnyChannels::sort(list),
+    ));
+    let mut out = std::io::Cursor::new(Vec::new());
+    image.write().to_buffered(&mut out).unwrap();
+    out.into_inner()
+}
+
+/// A multi-part EXR: one part per prefix (`diffuse.R` goes to part `diffuse` as channel
+/// `R`), each part of its own size.
+pub fn exr_multi(parts: &[Part<'_>], sample: Sample) -> Vec<u8> {
+    let layers: Vec<_> = parts
+        .iter()
+        .map(|(name, size, planes)| {
+            let list: SmallVec<[AnyChannel<FlatSamples>; 4]> =
+                planes.iter().map(|(n, d)| channel(n, d, sample)).collect();
+            Layer::new(*size, LayerAttributes::named(*name), Encoding::FAST_LOSSLESS, AnyChannels::sort(list))
+        })
+        .collect();
+    let image = Image::from_layers(ImageAttributes::new(IntegerBounds::from_dimensions(parts[0].1)), layers);
+    let mut out = std::io::Cursor::new(Vec::new());
+    image.write().to_buffered(&mut out).unwrap();
+    out.into_inner()
+}
+
+/// Splits canonical names into parts by their prefix (`diffuse.R` → part `diffuse`, channel
+/// `R`; names without a dot go to part `main`).
+pub fn by_part(planes: &[(String, Vec<f32>)]) -> Vec<(String, NamedPlanes)> {
+    let mut parts: Vec<(String, NamedPlanes)> = Vec::new();
+    for (name, data) in planes {
+        let (part, ch) = match name.split_once('.') {
+            Some((p, c)) => (p.to_string(), c.to_string()),
+            None => (name.clone(), "V".to_string()),
+        };
+        match parts.iter_mut().find(|(p, _)| *p == part) {
+            Some((_, list)) => list.push((ch, data.clone())),
+            None => parts.push((part, vec![(ch, data.clone())])),
+        }
+    }
+    parts
+}
+
+pub fn frame_of(bytes: &[u8]) -> Frame {
+    Frame::from_exr_bytes(bytes, &Default::default()).expect("valid frame")
+}
+
+pub fn max_rel_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
+    a.iter().zip(b).map(|(x, y)| (x - y).abs() / scale).fold(0f32, f32::max)
+}

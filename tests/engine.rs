@@ -1,0 +1,228 @@
+//! The engine on real contract-v1 graphs (the tiny random test models): preprocessing
+//! values, tiling, variant choice, contract checks, cancellation.
+
+mod common;
+
+use common::*;
+use mcdenoise::engine::contract::COLOR_CHANNELS;
+use mcdenoise::engine::preprocess::{luminance, preprocess};
+use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig, EngineError, FrameStats, Rect, Variant, EPS};
+use mcdenoise::frame::{layout::REQUIRED, Buffer, Frame};
+
+/// A 3×2 frame with hand-picked values.
+fn hand_frame() -> Frame {
+    let p = |v: [f32; 6]| v.to_vec();
+    let planes = vec![
+        ("diffuse.R".into(), p([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])),
+        ("diffuse.G".into(), p([0.5; 6])),
+        ("diffuse.B".into(), p([0.0; 6])),
+        ("albedo.R".into(), p([0.5, 0.25, 1.0, 0.5, 0.5, 0.5])),
+        ("albedo.G".into(), p([1.0; 6])),
+        ("albedo.B".into(), p([0.0; 6])),
+        ("specular.R".into(), p([0.0, 1.0, 3.0, -1.0, 0.5, 0.0])),
+        ("specular.G".into(), p([0.0; 6])),
+        ("specular.B".into(), p([0.0; 6])),
+        ("normal.R".into(), p([0.0, 0.5, 1.0, 0.0, 0.0, 0.0])),
+        ("normal.G".into(), p([0.0; 6])),
+        ("normal.B".into(), p([1.0; 6])),
+        ("depth.Z".into(), p([1.0, 2.0, 4.0, 8.0, 0.0, 2.0])),
+        ("covariance".into(), p([0.0, 0.1, 0.2, 0.4, 0.1, 0.0])),
+        ("diffuseVariance.R".into(), p([0.1; 6])),
+        ("diffuseVariance.G".into(), p([0.2; 6])),
+        ("diffuseVariance.B".into(), p([0.3; 6])),
+        ("specularVariance.Z".into(), p([0.4; 6])),
+        ("albedoVariance.Z".into(), p([0.01; 6])),
+        ("normalVariance.Z".into(), p([0.02; 6])),
+        ("depthVariance.Z".into(), p([1.6; 6])),
+        ("covarianceVariance.Z".into(), p([0.016; 6])),
+    ];
+    Frame::from_planes(3, 2, planes, REQUIRED).unwrap()
+}
+
+fn close(a: f32, b: f32) -> bool {
+    (a - b).abs() <= 1e-6 * b.abs().max(1.0)
+}
+
+#[test]
+fn preprocessing_matches_closed_form() {
+    let frame = hand_frame();
+    let stats = FrameStats::of(&frame);
+    assert_eq!(stats, FrameStats { depth_max: 8.0, covariance_max: 0.4 });
+    let t = preprocess(&frame, &stats, Variant::Full, Rect { x: 0, y: 0, w: 3, h: 2 });
+    let n = 6;
+    let ch = |v: &[f32], c: usize| v[c * n..(c + 1) * n].to_vec();
+
+    // Diffuse color d / (a + ε), its gradients, and its variance lum(σ² / (a + ε)²).
+    let d = ch(&t.diffuse, 0);
+    assert!(close(d[0], 1.0 / (0.5 + EPS)) && close(d[1], 2.0 / (0.25 + EPS)));
+    let gx = ch(&t.diffuse, 4);
+    assert!(close(gx[0], d[1] - d[0]) && close(gx[1], d[2] - d[1]) && gx[2] == 0.0, "{gx:?}");
+    let gy = ch(&t.diffuse, 7);
+    assert!(close(gy[0], d[3] - d[0]) && gy[3] == 0.0 && gy[5] == 0.0);
+    let var = ch(&t.diffuse, 3);
+    let want = luminance(0.1 / (0.5 + EPS).powi(2), 0.2 / (1.0 + EPS).powi(2), 0.3 / EPS.powi(2));
+    assert!(close(var[0], want), "{} vs {want}", var[0]);
+
+    // Specular ln(1 + max(s, 0)) and variance σ² / (1 + s)² per channel, then luminance.
+    let s = ch(&t.specular, 0);
+    assert!(close(s[1], 2f32.ln()) && close(s[2], 4f32.ln()) && s[3] == 0.0);
+    let svar = ch(&t.specular, 3);
+    assert!(close(svar[2], luminance(0.4 / 16.0, 0.4, 0.4)), "{}", svar[2]);
+
+    // Features: depth and covariance divided by the frame's maximum; variances by its square.
+    assert_eq!(t.features.len(), 28 * n);
+    let f = |k: usize| ch(&t.features, k);
+    assert_eq!(f(0)[1], 0.5); // normal.R
+    assert_eq!(f(3)[0], 0.5); // albedo.R
+    assert!(close(f(6)[2], 0.5) && close(f(6)[3], 1.0)); // depth / 8
+    assert!(close(f(7)[2], 0.5)); // covariance / 0.4
+    assert!(close(f(8)[0], 0.02)); // normalVariance
+    assert!(close(f(9)[0], 0.01)); // albedoVariance
+    assert!(close(f(10)[0], 1.6 / 64.0)); // depthVariance / 8²
+    assert!(close(f(11)[0], 0.016 / 0.16)); // covarianceVariance / 0.4²
+    assert!(close(f(12)[0], 0.5)); // gx normal.R
+    assert!(close(f(18)[0], 0.125)); // gx depth
+    assert!(close(f(26)[0], 7.0 / 8.0)); // gy depth: (8 − 1) / 8
+    assert!(close(f(27)[1], 0.0)); // gy covariance: 0.1 − 0.1
+
+    // The nocov variant is the full one without the covariance channels.
+    let nocov = preprocess(&frame, &stats, Variant::Nocov, Rect { x: 0, y: 0, w: 3, h: 2 });
+    let keep: Vec<usize> = (0..28).filter(|k| ![7, 11, 19, 27].contains(k)).collect();
+    for (j, &k) in keep.iter().enumerate() {
+        assert_eq!(ch(&nocov.features, j), f(k), "feature {k}");
+    }
+}
+
+#[test]
+fn a_region_preprocesses_like_the_same_pixels_of_the_whole_frame() {
+    let frame = synthetic_frame(21, 17, true);
+    let stats = FrameStats::of(&frame);
+    let whole = preprocess(&frame, &stats, Variant::Full, Rect { x: 0, y: 0, w: 21, h: 17 });
+    let rect = Rect { x: 5, y: 4, w: 16, h: 9 };
+    let part = preprocess(&frame, &stats, Variant::Full, rect);
+    for (a, b, c) in [(&part.diffuse, &whole.diffuse, COLOR_CHANNELS), (&part.features, &whole.features, 28)] {
+        for k in 0..c {
+            for y in 0..rect.h {
+                for x in 0..rect.w {
+                    assert_eq!(a[k * rect.pixels() + y * rect.w + x], b[k * 21 * 17 + (rect.y + y) * 21 + rect.x + x]);
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn tiled_output_equals_whole_frame_output() {
+    let frame = synthetic_frame(53, 41, true);
+    let whole = engine(0).denoise(&frame, None, &mut |_| true).unwrap();
+    assert_eq!(whole.tiles, 1);
+    for tile in [16, 25] {
+        let tiled = engine(tile).denoise(&frame, None, &mut |_| true).unwrap();
+        assert!(tiled.tiles > 4);
+        for c in 0..3 {
+            let d = max_rel_diff(&tiled.color[c], &whole.color[c]);
+            assert!(d <= 1e-5, "tile {tile}, channel {c}: relative difference {d}");
+        }
+    }
+}
+
+#[test]
+fn the_variant_follows_the_frames_channels() {
+    let mut e = engine(32);
+    let full = e.denoise(&synthetic_frame(20, 20, true), None, &mut |_| true).unwrap();
+    assert_eq!(full.variant, Variant::Full);
+    let nocov = e.denoise(&synthetic_frame(20, 20, false), None, &mut |_| true).unwrap();
+    assert_eq!(nocov.variant, Variant::Nocov);
+    let err = e.denoise(&synthetic_frame(20, 20, false), Some(Variant::Full), &mut |_| true).err().unwrap();
+    assert!(err.to_string().contains("needs a `covariance` channel"), "{err}");
+}
+
+#[test]
+fn output_is_finite_and_positive_where_input_is() {
+    let out = engine(32).denoise(&synthetic_frame(40, 30, true), None, &mut |_| true).unwrap();
+    for c in 0..3 {
+        assert!(out.color[c].iter().all(|v| v.is_finite() && *v >= 0.0));
+        for i in 0..out.color[c].len() {
+            assert!((out.color[c][i] - out.diffuse[c][i] - out.specular[c][i]).abs() <= 1e-6);
+        }
+    }
+}
+
+#[test]
+fn cancellation_stops_between_tiles() {
+    let mut e = engine(16);
+    let mut seen = 0;
+    let err = e
+        .denoise(&synthetic_frame(64, 64, true), None, &mut |p| {
+            seen = p.tiles_done;
+            p.tiles_done < 3
+        })
+        .err()
+        .unwrap();
+    assert!(matches!(err, EngineError::Cancelled));
+    assert_eq!(seen, 3);
+}
+
+fn copy_model(dir: &std::path::Path, variant: &str, component: &str, from_variant: &str, from_component: &str) {
+    std::fs::create_dir_all(dir.join(variant)).unwrap();
+    std::fs::copy(
+        tiny_models().join(from_variant).join(format!("{from_component}.onnx")),
+        dir.join(variant).join(format!("{component}.onnx")),
+    )
+    .unwrap();
+}
+
+fn load_error(dir: &std::path::Path) -> String {
+    let mut config = EngineConfig::new(dir);
+    config.threads = 1;
+    match Engine::load(&config) {
+        Ok(_) => panic!("loaded a mismatched model set"),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn mismatched_models_are_refused_with_the_field_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    // A full-variant model placed under nocov/.
+    copy_model(tmp.path(), "nocov", "diffuse", "full", "diffuse");
+    copy_model(tmp.path(), "nocov", "specular", "nocov", "specular");
+    let msg = load_error(tmp.path());
+    assert!(
+        msg.contains("nocov/diffuse.onnx") && msg.contains("`mcdenoise.variant` is `full`, expected `nocov`"),
+        "{msg}"
+    );
+
+    // A specular network named diffuse.onnx.
+    let tmp = tempfile::tempdir().unwrap();
+    copy_model(tmp.path(), "full", "diffuse", "full", "specular");
+    copy_model(tmp.path(), "full", "specular", "full", "specular");
+    let msg = load_error(tmp.path());
+    assert!(msg.contains("`mcdenoise.component` is `specular`, expected `diffuse`"), "{msg}");
+
+    // A missing file, and a directory without variants.
+    let tmp = tempfile::tempdir().unwrap();
+    copy_model(tmp.path(), "full", "diffuse", "full", "diffuse");
+    assert!(load_error(tmp.path()).contains("full/specular.onnx: file not found"));
+    let tmp = tempfile::tempdir().unwrap();
+    assert!(load_error(tmp.path()).contains("no model variants found"));
+
+    // Not an ONNX file at all.
+    let tmp = tempfile::tempdir().unwrap();
+    std::fs::create_dir_all(tmp.path().join("full")).unwrap();
+    std::fs::write(tmp.path().join("full/diffuse.onnx"), b"not a model").unwrap();
+    copy_model(tmp.path(), "full", "specular", "full", "specular");
+    assert!(load_error(tmp.path()).contains("cannot load"));
+}
+
+#[test]
+fn models_report_their_contract_fields() {
+    let e = engine(0);
+    assert_eq!(e.variants(), vec![Variant::Full, Variant::Nocov]);
+    for info in e.models() {
+        assert_eq!(info.receptive_radius, 6);
+        assert!(info.flops_per_pixel > 1000.0);
+    }
+    assert!(e.flops_per_pixel(Variant::Full).unwrap() > e.flops_per_pixel(Variant::Nocov).unwrap());
+    assert!(Buffer::ALL.len() == 13);
+}
