@@ -1,0 +1,215 @@
+"""Parity with the Rust engine (`mcdenoise preprocess` and `mcdenoise run`).
+
+The binary is taken from MCDENOISE_BIN (the Makefile sets it, and ORT_DYLIB_PATH for the
+engine's onnxruntime). Without it these tests are skipped, or fail when CI is set.
+
+A synthetic 48x40 frame with every channel of docs/frame-layout.md is written as a
+float32 single-part EXR, with and without the covariance pair. Small random networks
+(separate, width 8, 4 blocks, predictor 3 x 16, receptive radius 13; head weights scaled
+so the kernels are far from uniform) are exported for both variants. Then:
+
+1. `preprocess` of the frame without covariance gives 24 feature channels equal to the
+   full frame's features at NOCOV_INDICES, and identical color tensors;
+2. `preprocess` agrees with the formulas of frame-layout.md, recomputed here in float64;
+3. `run --tile 32` (tiles smaller than the frame) agrees with the torch networks run on
+   the whole preprocessed frame plus `reconstruct` in float64, for R,G,B and the
+   `diffuse.*` / `specular.*` layers. Per sample, |engine - torch| / max(|torch|, 1e-3)
+   must be <= 1e-4 when the engine writes float32 (2^-10, half's precision, if it writes
+   half).
+
+The torch reference runs the network on the whole frame, so the conv's zero padding
+applies at the frame border only: the engine's tiles must take their context from the
+frame (cut at the frame border, not padded) for the two to agree.
+"""
+
+import os
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise_train.contract import COMPONENTS, EPS, NOCOV_INDICES
+from mcdenoise_train.export import export_onnx, random_models, scale_head
+from mcdenoise_train.frames import exr_pixel_types, read_exr, synthetic_frame, write_exr
+from mcdenoise_train.recon import reconstruct
+
+H, W = 40, 48
+TILE = 32
+NET = dict(arch="separate", width=8, blocks=4, predictor_width=16, predictor_depth=3)
+HEAD_GAIN = 25.0
+LUM = np.array([0.2126, 0.7152, 0.0722])
+
+
+def require_engine() -> str:
+    exe = os.environ.get("MCDENOISE_BIN")
+    if exe and Path(exe).is_file():
+        return exe
+    problem = (
+        f"MCDENOISE_BIN={exe!r} is not a file: build the engine (`make build`) and set "
+        "MCDENOISE_BIN to target/release/mcdenoise (the Makefile's `make test` does both)"
+        if exe
+        else "MCDENOISE_BIN is not set: run through `make test`, or set it to the built "
+        "mcdenoise binary (target/release/mcdenoise)"
+    )
+    if os.environ.get("CI"):
+        pytest.fail(problem, pytrace=False)
+    pytest.skip(problem)
+
+
+def engine(exe: str, *args) -> None:
+    cmd = [exe, *map(str, args)]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    if p.returncode != 0:
+        pytest.fail(
+            f"`{' '.join(cmd)}` exited with {p.returncode}\n"
+            f"stdout:\n{p.stdout}\nstderr:\n{p.stderr}",
+            pytrace=False,
+        )
+
+
+def preprocess(exe: str, frame: Path, out: Path) -> dict[str, np.ndarray]:
+    engine(exe, "preprocess", frame, "-o", out)
+    with np.load(out) as z:
+        return {k: z[k] for k in z.files}
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """Frames (full and nocov) and a models directory with the torch networks."""
+    root = tmp_path_factory.mktemp("parity")
+    frames = {
+        "full": synthetic_frame(H, W, seed=21, covariance=True),
+        "nocov": synthetic_frame(H, W, seed=21, covariance=False),
+    }
+    paths = {}
+    for v, ch in frames.items():
+        paths[v] = root / f"frame-{v}.exr"
+        write_exr(paths[v], ch)
+    nets = random_models(11, **NET)
+    for (v, c), net in nets.items():
+        scale_head(net, HEAD_GAIN)
+        export_onnx(net, root / "models" / v / f"{c}.onnx", c, v)
+    return dict(root=root, frames=frames, paths=paths, nets=nets, models=root / "models")
+
+
+def test_preprocess_nocov_is_full_without_covariance(request):
+    exe = require_engine()
+    case = request.getfixturevalue("case")
+    full = preprocess(exe, case["paths"]["full"], case["root"] / "full.npz")
+    nocov = preprocess(exe, case["paths"]["nocov"], case["root"] / "nocov.npz")
+    assert int(full["variant"]) == 1 and int(nocov["variant"]) == 0
+    assert full["features"].shape == (28, H, W) and nocov["features"].shape == (24, H, W)
+    for arrs in (full, nocov):
+        for k in ("diffuse_color", "specular_color", "features", "albedo", "noisy"):
+            assert arrs[k].dtype == np.float32, k
+    np.testing.assert_allclose(
+        nocov["features"], full["features"][list(NOCOV_INDICES)], rtol=1e-6, atol=1e-7
+    )
+    for k in ("diffuse_color", "specular_color", "albedo", "noisy"):
+        np.testing.assert_allclose(nocov[k], full[k], rtol=1e-6, atol=1e-7, err_msg=k)
+
+
+def _grads(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    gx = np.zeros_like(b)
+    gy = np.zeros_like(b)
+    gx[..., :, :-1] = b[..., :, 1:] - b[..., :, :-1]
+    gy[..., :-1, :] = b[..., 1:, :] - b[..., :-1, :]
+    return gx, gy
+
+
+def reference_preprocess(ch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """frame-layout.md's preprocessing in float64 (variances given as one channel)."""
+    f = {k: v.astype(np.float64) for k, v in ch.items()}
+    rgb = lambda name: np.stack([f[f"{name}.{c}"] for c in "RGB"])
+    lum = lambda x: np.tensordot(LUM, x, axes=1)
+    d, s, a, n = rgb("diffuse"), rgb("specular"), rgb("albedo"), rgb("normal")
+    sp = np.maximum(s, 0.0)
+
+    def color(c, v):
+        gx, gy = _grads(c)
+        return np.concatenate([c, v[None], gx, gy])
+
+    dc = d / (a + EPS)
+    sc = np.log1p(sp)
+    out = {
+        "diffuse_color": color(dc, lum(f["diffuseVariance.Z"] / (a + EPS) ** 2)),
+        "specular_color": color(sc, lum(f["specularVariance.Z"] / (1.0 + sp) ** 2)),
+        "albedo": a,
+        "noisy": d + s,
+    }
+    base = [n, a]
+    variances = [f["normalVariance.Z"] * LUM.sum(), f["albedoVariance.Z"] * LUM.sum()]
+    z = f["depth.Z"]
+    mz = z[np.isfinite(z)].max()
+    base.append((np.clip(z, 0, mz) / mz)[None])
+    variances.append(f["depthVariance.Z"] * LUM.sum() / mz**2)
+    if "covariance" in f:
+        eta = f["covariance"]
+        me = eta[np.isfinite(eta)].max()
+        base.append((np.clip(eta, 0, me) / me)[None])
+        variances.append(f["covarianceVariance.Z"] * LUM.sum() / me**2)
+    b = np.concatenate(base)
+    gx, gy = _grads(b)
+    out["features"] = np.concatenate([b, np.stack(variances), gx, gy])
+    return out
+
+
+@pytest.mark.parametrize("variant", ["full", "nocov"])
+def test_preprocess_matches_frame_layout(request, variant):
+    exe = require_engine()
+    case = request.getfixturevalue("case")
+    got = preprocess(exe, case["paths"][variant], case["root"] / f"layout-{variant}.npz")
+    ref = reference_preprocess(case["frames"][variant])
+    for k, r in ref.items():
+        assert got[k].shape == r.shape, k
+        for i in range(r.shape[0]):
+            np.testing.assert_allclose(
+                got[k][i], r[i], rtol=1e-5, atol=1e-5 * max(np.abs(r[i]).max(), 1e-3),
+                err_msg=f"{k}[{i}]",
+            )
+
+
+def _compare(name, got, ref, tol):
+    err = np.abs(got.astype(np.float64) - ref) / np.maximum(np.abs(ref), 1e-3)
+    i = tuple(int(j) for j in np.unravel_index(int(err.argmax()), err.shape))
+    if not err.max() <= tol:
+        raise AssertionError(
+            f"{name}: max relative error {err.max():.3g} at (y, x) = {i} "
+            f"(engine {got[i]:.7g}, torch {ref[i]:.7g}), tolerance {tol:g}"
+        )
+
+
+@pytest.mark.parametrize("variant", ["full", "nocov"])
+def test_run_matches_torch(request, variant):
+    exe = require_engine()
+    case = request.getfixturevalue("case")
+    root = case["root"]
+    arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz")
+    assert int(arrs["variant"]) == (1 if variant == "full" else 0)
+
+    t = lambda k: torch.from_numpy(arrs[k])[None]
+    with torch.no_grad():
+        logits = {
+            c: case["nets"][(variant, c)](t(f"{c}_color"), t("features")).double()
+            for c in COMPONENTS
+        }
+    r = reconstruct(
+        logits["diffuse"], logits["specular"],
+        t("diffuse_color").double(), t("specular_color").double(), t("albedo").double(),
+    )
+    expect = {"": r.total[0].numpy(), "diffuse.": r.diffuse[0].numpy(), "specular.": r.specular[0].numpy()}
+
+    out = root / f"out-{variant}.exr"
+    engine(exe, "run", case["paths"][variant], "-o", out, "--models", case["models"],
+           "--layers", "diffuse,specular", "--tile", TILE)
+    got = read_exr(out)
+    types = exr_pixel_types(out)
+    for prefix, ref in expect.items():
+        for i, c in enumerate("RGB"):
+            name = prefix + c
+            assert name in got, f"{out} has no channel {name!r}; channels: {sorted(got)}"
+            assert got[name].shape == (H, W), name
+            tol = 1e-4 if types[name] == "FLOAT" else 2.0**-10
+            _compare(name, got[name], ref[i], tol)
