@@ -270,3 +270,26 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     eprintln!("wrote {} ({}x{}, variant {})", args.output.display(), w, h, variant.name());
     Ok(())
 }
+
+#[derive(Args, Debug)]
+pub struct MetricsArgs {
+    /// Image (`R,G,B`, or `diffuse.*` + `specular.*`).
+    pub image: PathBuf,
+    /// Reference image, same size.
+    #[arg(long)]
+    pub reference: PathBuf,
+    #[command(flatten)]
+    pub frame: FrameArgs,
+}
+
+/// `mcdenoise metrics`: the metrics of one image against a reference, as JSON on stdout.
+pub fn metrics(args: MetricsArgs) -> Result<()> {
+    let limits = args.frame.limits();
+    let image = read(&args.image, &limits, true)?;
+    let reference = read(&args.reference, &limits, true)?;
+    check_same_size(&image, &reference)?;
+    let (x, r) = (image.color(), reference.color());
+    let m = Metrics::compute([&x[0], &x[1], &x[2]], [&r[0], &r[1], &r[2]], image.width, image.height);
+    println!("{}", serde_json::to_string(&m)?);
+    Ok(())
+}

@@ -19,6 +19,8 @@ enum Command {
     Run(cli::RunArgs),
     /// Write the network inputs of one frame (and training targets) as .npz.
     Preprocess(cli::PreprocessArgs),
+    /// Print RelMSE, DSSIM, PSNR and SMAPE of an image against a reference as JSON.
+    Metrics(cli::MetricsArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -29,6 +31,7 @@ fn main() -> std::process::ExitCode {
     let result = match Cli::parse().command {
         Command::Run(args) => cli::run(args),
         Command::Preprocess(args) => cli::preprocess(args),
+        Command::Metrics(args) => cli::metrics(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
