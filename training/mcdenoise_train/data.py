@@ -1,8 +1,7 @@
 """Training data: frames preprocessed by the Rust engine, and patch sampling.
 
-A data set directory holds `manifest.jsonl`, one JSON object per noisy frame with at
-least `noisy` and `reference` (paths relative to the directory), `scene` and `split`
-(`train` or `val`); `spp` and `seed` are kept when present. Every frame is turned into
+A data set directory holds `manifest.jsonl` as written by `datagen.dataset` (one record
+per scene, see `read_manifest`). Every frame is turned into
 network inputs and training targets by `mcdenoise preprocess --reference` (the engine's
 implementation, so training and serving see the same tensors), cached as
 `<data>/preprocessed/<name>.npz` next to the frames and redone when a source is newer.
@@ -37,7 +36,12 @@ def engine_binary() -> str:
 
 
 def read_manifest(data_dir: str | os.PathLike) -> list[dict]:
-    """The manifest's records, with `noisy`/`reference` made absolute."""
+    """One record per noisy frame, with absolute `noisy` and `reference` paths.
+
+    Accepts the data generator's per-scene records (`frames` maps each sample count and
+    `ref` to a path; only `complete` scenes) and flat per-frame records (`noisy`,
+    `reference`). Relative paths are relative to `data_dir`.
+    """
     data_dir = Path(data_dir)
     records = []
     with open(data_dir / "manifest.jsonl") as f:
@@ -45,11 +49,20 @@ def read_manifest(data_dir: str | os.PathLike) -> list[dict]:
             if not line.strip():
                 continue
             r = json.loads(line)
-            if r.get("kind", "noisy") != "noisy":
-                continue
-            r["noisy"] = str(data_dir / r["noisy"])
-            r["reference"] = str(data_dir / r["reference"])
-            records.append(r)
+            if "frames" in r:
+                if not r.get("complete", True) or "ref" not in r["frames"]:
+                    continue
+                ref = r["frames"]["ref"]["path"]
+                for spp, frame in sorted(r["frames"].items(), key=lambda kv: kv[0]):
+                    if spp == "ref":
+                        continue
+                    records.append({"scene": r["scene"], "seed": r.get("seed"), "split": r.get("split", "train"),
+                                    "spp": int(spp), "noisy": str(data_dir / frame["path"]),
+                                    "reference": str(data_dir / ref)})
+            else:
+                r["noisy"] = str(data_dir / r["noisy"])
+                r["reference"] = str(data_dir / r["reference"])
+                records.append(r)
     return records
 
 

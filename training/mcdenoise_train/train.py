@@ -163,6 +163,7 @@ def build_models(a: argparse.Namespace) -> dict[str, DenoiserNet]:
 def main(argv=None) -> int:
     a = parse(argv)
     torch.set_num_threads(max(1, a.threads))
+    torch.set_flush_denormal(True)  # real frames have near-zero values; denormals are slow
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     train = load_frames(a.data, "train", a.variant)
