@@ -9,10 +9,24 @@
 //!   reconstruction. Synchronous; callers own the threads.
 //! - [`metrics`]: RelMSE, DSSIM, PSNR, SMAPE.
 //! - [`cli`]: the offline commands (`mcdenoise run`, `mcdenoise preprocess`).
+//! - The daemon (`mcdenoise serve`, `docs/api.md`): [`config`] (flags, environment, file),
+//!   [`jobs`] (the transport-free core: admission, persistent store, priority queue,
+//!   workers that own engines, progress events), [`http`] and [`grpc`] (the two
+//!   transports over one core), [`server`] (startup and graceful shutdown), [`telemetry`]
+//!   (logs and Prometheus metrics), [`error`] (one error type, two mappings), [`client`]
+//!   (`mcdenoise submit`).
 //!
 //! `docs/frame-layout.md` and `docs/model-contract.md` describe the formats.
 
 pub mod cli;
+pub mod client;
+pub mod config;
 pub mod engine;
+pub mod error;
 pub mod frame;
+pub mod grpc;
+pub mod http;
+pub mod jobs;
 pub mod metrics;
+pub mod server;
+pub mod telemetry;

@@ -1,9 +1,9 @@
-//! The `mcdenoise` command: offline denoising and preprocessing.
+//! The `mcdenoise` command: offline denoising and preprocessing, the daemon, its client.
 
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
 
-use mcdenoise::cli;
+use mcdenoise::{cli, client, config, server};
 
 /// Denoiser for Monte Carlo path-traced frames (kernel-predicting CNNs on ONNX Runtime).
 #[derive(Parser, Debug)]
@@ -21,17 +21,47 @@ enum Command {
     Preprocess(cli::PreprocessArgs),
     /// Print RelMSE, DSSIM, PSNR and SMAPE of an image against a reference as JSON.
     Metrics(cli::MetricsArgs),
+    /// Run the denoising daemon: HTTP and gRPC job API, persistent queue (docs/api.md).
+    Serve(Box<config::ServeArgs>),
+    /// Submit a frame to a daemon, optionally wait for it and fetch the result.
+    Submit(client::SubmitArgs),
 }
 
-fn main() -> std::process::ExitCode {
+fn init_cli_logging() {
     tracing_subscriber::fmt()
         .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("warn")))
         .with_writer(std::io::stderr)
         .init();
+}
+
+fn main() -> std::process::ExitCode {
     let result = match Cli::parse().command {
-        Command::Run(args) => cli::run(args),
-        Command::Preprocess(args) => cli::preprocess(args),
-        Command::Metrics(args) => cli::metrics(args),
+        Command::Run(args) => {
+            init_cli_logging();
+            cli::run(args)
+        }
+        Command::Preprocess(args) => {
+            init_cli_logging();
+            cli::preprocess(args)
+        }
+        Command::Metrics(args) => {
+            init_cli_logging();
+            cli::metrics(args)
+        }
+        Command::Serve(args) => {
+            // With a config file, parse again so that the file supplies the defaults.
+            let args = if args.config.is_some() {
+                let argv = std::env::args_os().skip_while(|a| a != "serve");
+                config::parse_serve_args(argv)
+            } else {
+                args.validate().map(|()| *args)
+            };
+            args.and_then(server::serve)
+        }
+        Command::Submit(args) => {
+            init_cli_logging();
+            client::submit(args)
+        }
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

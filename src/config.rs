@@ -1,0 +1,312 @@
+//! Configuration of `mcdenoise serve`: flags, environment variables and an optional TOML
+//! file.
+//!
+//! Precedence, highest first: command-line flag, environment variable (named on each
+//! field), the file given by `--config` / `MCDENOISE_CONFIG`, the built-in default. The
+//! file's keys are the long flag names (`queue-capacity = 64` or `queue_capacity = 64`);
+//! unknown keys are an error.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{bail, Context};
+use clap::{Args, Command};
+
+use crate::frame::Limits;
+use crate::telemetry::LogFormat;
+
+fn parse_duration(s: &str) -> Result<Duration, String> {
+    humantime::parse_duration(s).map_err(|e| format!("{e} (examples: 30s, 5m, 24h)"))
+}
+
+/// A bearer token; `Debug` never prints it.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Secret(pub String);
+
+impl std::fmt::Debug for Secret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("\"<redacted>\"")
+    }
+}
+
+impl std::str::FromStr for Secret {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.trim().is_empty() {
+            return Err("an auth token cannot be empty".into());
+        }
+        Ok(Secret(s.to_string()))
+    }
+}
+
+/// `mcdenoise serve`: the denoising daemon (HTTP and gRPC job API).
+#[derive(clap::Parser, Debug, Clone)]
+#[command(args_override_self = true)]
+pub struct ServeArgs {
+    /// TOML file with defaults for any of these options (keys are the long flag names).
+    #[arg(long, env = "MCDENOISE_CONFIG")]
+    pub config: Option<PathBuf>,
+
+    // --- Listeners -----------------------------------------------------------------
+    /// Address of the HTTP API (JSON under /v1, /livez, /readyz, /metrics).
+    #[arg(long, env = "MCDENOISE_HTTP", default_value = "0.0.0.0:8080", help_heading = "Listeners")]
+    pub http: SocketAddr,
+    /// Address of the gRPC API (mcdenoise.v1.Denoiser, grpc.health.v1, reflection).
+    #[arg(long, env = "MCDENOISE_GRPC", default_value = "0.0.0.0:50051", help_heading = "Listeners")]
+    pub grpc: SocketAddr,
+
+    // --- Storage -------------------------------------------------------------------
+    /// Directory of the job store (jobs.redb and the jobs' frames and results). Created
+    /// if missing; only one daemon may use it at a time.
+    #[arg(long, env = "MCDENOISE_DATA_DIR", default_value = "mcdenoise-data", help_heading = "Storage")]
+    pub data_dir: PathBuf,
+    /// How long finished jobs (and their results) are kept before they are removed.
+    #[arg(long, env = "MCDENOISE_RESULT_TTL", default_value = "24h", value_parser = parse_duration, help_heading = "Storage")]
+    pub result_ttl: Duration,
+    /// How often expired jobs are looked for.
+    #[arg(long, env = "MCDENOISE_JANITOR_INTERVAL", default_value = "60s", value_parser = parse_duration, help_heading = "Storage")]
+    pub janitor_interval: Duration,
+
+    // --- Models and workers ----------------------------------------------------------
+    /// Directory with the model variants (`full/`, `nocov/`; docs/model-contract.md).
+    #[arg(long, env = "MCDENOISE_MODELS", default_value = "models", help_heading = "Models and workers")]
+    pub models: PathBuf,
+    /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
+    #[arg(long, env = "ORT_DYLIB_PATH", help_heading = "Models and workers")]
+    pub ort_library: Option<PathBuf>,
+    /// Workers, each with its own ONNX Runtime sessions, denoising one job at a time
+    /// (default: cores / threads-per-worker, at least 1).
+    #[arg(long, env = "MCDENOISE_WORKERS", help_heading = "Models and workers")]
+    pub workers: Option<usize>,
+    /// Threads of each worker for inference and processing (default: min(cores, 8)).
+    #[arg(long, env = "MCDENOISE_THREADS_PER_WORKER", help_heading = "Models and workers")]
+    pub threads_per_worker: Option<usize>,
+    /// Tile side in pixels (0: whole frame at once). Smaller tiles use less memory and
+    /// make cancellation and progress finer; each tile adds a halo of context.
+    #[arg(long, env = "MCDENOISE_TILE", default_value_t = 256, help_heading = "Models and workers")]
+    pub tile: usize,
+
+    // --- Queue and limits --------------------------------------------------------------
+    /// Largest number of queued jobs (running ones excluded); beyond it submissions get
+    /// 429 / RESOURCE_EXHAUSTED.
+    #[arg(long, env = "MCDENOISE_QUEUE_CAPACITY", default_value_t = 256, help_heading = "Queue and limits")]
+    pub queue_capacity: usize,
+    /// Default deadline of a job, counted from its submission (0s: none). A job still
+    /// queued or running at its deadline fails with `deadline_exceeded`.
+    #[arg(long, env = "MCDENOISE_JOB_DEADLINE", default_value = "1h", value_parser = parse_duration, help_heading = "Queue and limits")]
+    pub job_deadline: Duration,
+    /// Largest upload (frame plus reference) in bytes; larger ones get 413 /
+    /// INVALID_ARGUMENT.
+    #[arg(long, env = "MCDENOISE_MAX_BODY_BYTES", default_value_t = 1 << 30, help_heading = "Queue and limits")]
+    pub max_body_bytes: u64,
+    /// Largest accepted frame, in pixels (checked from the EXR header).
+    #[arg(long, env = "MCDENOISE_MAX_PIXELS", default_value_t = Limits::default().max_pixels, help_heading = "Queue and limits")]
+    pub max_pixels: u64,
+
+    // --- Security ----------------------------------------------------------------------
+    /// Bearer tokens accepted on every endpoint except /livez, /readyz and gRPC health
+    /// (comma-separated in the environment). None: no authentication.
+    #[arg(
+        long = "auth-token",
+        env = "MCDENOISE_AUTH_TOKENS",
+        value_delimiter = ',',
+        hide_env_values = true,
+        help_heading = "Security"
+    )]
+    pub auth_tokens: Vec<Secret>,
+
+    // --- Operations --------------------------------------------------------------------
+    /// Log format.
+    #[arg(long, env = "MCDENOISE_LOG_FORMAT", value_enum, default_value_t, help_heading = "Operations")]
+    pub log_format: LogFormat,
+    /// Log filter (RUST_LOG syntax, e.g. `info,ort=warn` or `debug`). ONNX Runtime's own
+    /// messages come under the `ort` target.
+    #[arg(long, env = "MCDENOISE_LOG", default_value = "info,ort=warn", help_heading = "Operations")]
+    pub log: String,
+    /// On SIGTERM/SIGINT: how long running jobs may take to finish. Jobs still running
+    /// then are stopped between two tiles and kept queued for the next start.
+    #[arg(long, env = "MCDENOISE_SHUTDOWN_TIMEOUT", default_value = "30s", value_parser = parse_duration, help_heading = "Operations")]
+    pub shutdown_timeout: Duration,
+
+    // --- Testing hooks (hidden) ------------------------------------------------------
+    /// Sleeps this long after every tile (to make jobs slow in tests).
+    #[arg(long, env = "MCDENOISE_DEBUG_TILE_DELAY", value_parser = parse_duration, default_value = "0s", hide = true)]
+    pub debug_tile_delay: Duration,
+    /// Sleeps this long before loading models (to observe readiness in tests).
+    #[arg(long, env = "MCDENOISE_DEBUG_STARTUP_DELAY", value_parser = parse_duration, default_value = "0s", hide = true)]
+    pub debug_startup_delay: Duration,
+}
+
+fn cores() -> usize {
+    std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+}
+
+impl ServeArgs {
+    pub fn threads_per_worker(&self) -> usize {
+        self.threads_per_worker.unwrap_or_else(|| cores().min(8)).max(1)
+    }
+
+    pub fn workers(&self) -> usize {
+        self.workers.unwrap_or_else(|| (cores() / self.threads_per_worker()).max(1)).max(1)
+    }
+
+    pub fn limits(&self) -> Limits {
+        Limits { max_pixels: self.max_pixels }
+    }
+
+    /// Checks values that clap cannot.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        if self.queue_capacity == 0 {
+            bail!("--queue-capacity must be at least 1");
+        }
+        if self.workers == Some(0) {
+            bail!("--workers must be at least 1");
+        }
+        if self.janitor_interval.is_zero() {
+            bail!("--janitor-interval must be positive");
+        }
+        Ok(())
+    }
+
+    /// The settings as logged at startup (tokens redacted).
+    pub fn summary(&self) -> serde_json::Value {
+        serde_json::json!({
+            "http": self.http.to_string(),
+            "grpc": self.grpc.to_string(),
+            "data_dir": self.data_dir,
+            "models": self.models,
+            "workers": self.workers(),
+            "threads_per_worker": self.threads_per_worker(),
+            "tile": self.tile,
+            "queue_capacity": self.queue_capacity,
+            "job_deadline": humantime::format_duration(self.job_deadline).to_string(),
+            "result_ttl": humantime::format_duration(self.result_ttl).to_string(),
+            "max_body_bytes": self.max_body_bytes,
+            "max_pixels": self.max_pixels,
+            "auth": if self.auth_tokens.is_empty() { "off".to_string() } else { format!("{} token(s)", self.auth_tokens.len()) },
+            "log_format": self.log_format,
+            "shutdown_timeout": humantime::format_duration(self.shutdown_timeout).to_string(),
+        })
+    }
+}
+
+/// Reads a TOML config file and sets its values as the defaults of `cmd`'s arguments (so
+/// flags and environment variables still win). `cmd` is the `serve` command.
+pub fn apply_config_file(mut cmd: Command, path: &Path) -> anyhow::Result<Command> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read config file {}", path.display()))?;
+    let table: toml::Table = text.parse().with_context(|| format!("{}: not valid TOML", path.display()))?;
+    let ids: Vec<String> = cmd.get_arguments().map(|a| a.get_id().to_string()).collect();
+    let mut unknown = Vec::new();
+    for (key, value) in table {
+        let mut id = key.replace('-', "_");
+        if id == "auth_token" {
+            id = "auth_tokens".into();
+        }
+        if !ids.contains(&id) || id == "config" {
+            unknown.push(key);
+            continue;
+        }
+        let values: Vec<String> = match value {
+            toml::Value::Array(items) => items.iter().map(scalar).collect::<anyhow::Result<_>>()?,
+            other => vec![scalar(&other)?],
+        };
+        // clap keeps `&'static str` defaults; a config file is read once per process.
+        let leaked: Vec<&'static str> = values.into_iter().map(|v| &*Box::leak(v.into_boxed_str())).collect();
+        cmd = cmd.mut_arg(id.as_str(), |a| a.default_values(leaked));
+    }
+    if !unknown.is_empty() {
+        bail!(
+            "{}: unknown keys: {} (keys are the long flag names of `mcdenoise serve`)",
+            path.display(),
+            unknown.join(", ")
+        );
+    }
+    Ok(cmd)
+}
+
+fn scalar(v: &toml::Value) -> anyhow::Result<String> {
+    Ok(match v {
+        toml::Value::String(s) => s.clone(),
+        toml::Value::Integer(i) => i.to_string(),
+        toml::Value::Float(f) => f.to_string(),
+        toml::Value::Boolean(b) => b.to_string(),
+        other => bail!("unsupported value {other:?} in the config file"),
+    })
+}
+
+/// Parses `serve` arguments from `argv` (without the program or subcommand name in front:
+/// `argv[0]` is taken as the command name), applying the config file if one is named.
+pub fn parse_serve_args<I, T>(argv: I) -> anyhow::Result<ServeArgs>
+where
+    I: IntoIterator<Item = T>,
+    T: Into<std::ffi::OsString> + Clone,
+{
+    use clap::{CommandFactory, FromArgMatches};
+    let argv: Vec<std::ffi::OsString> = argv.into_iter().map(Into::into).collect();
+    let first = ServeArgs::try_parse_from_args(&argv)?;
+    let args = match &first.config {
+        None => first,
+        Some(path) => {
+            let cmd = apply_config_file(ServeArgs::command(), path)?;
+            let matches = cmd.try_get_matches_from(&argv)?;
+            ServeArgs::from_arg_matches(&matches)?
+        }
+    };
+    args.validate()?;
+    Ok(args)
+}
+
+impl ServeArgs {
+    fn try_parse_from_args(argv: &[std::ffi::OsString]) -> Result<ServeArgs, clap::Error> {
+        <ServeArgs as clap::Parser>::try_parse_from(argv)
+    }
+}
+
+/// Adds the `serve` options to a subcommand (used by the `mcdenoise` binary).
+pub fn augment(cmd: Command) -> Command {
+    <ServeArgs as Args>::augment_args(cmd)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_documented_values() {
+        let a = parse_serve_args(["serve"]).unwrap();
+        assert_eq!(a.http.to_string(), "0.0.0.0:8080");
+        assert_eq!(a.grpc.to_string(), "0.0.0.0:50051");
+        assert_eq!(a.queue_capacity, 256);
+        assert_eq!(a.result_ttl, Duration::from_secs(86400));
+        assert!(a.auth_tokens.is_empty());
+    }
+
+    #[test]
+    fn config_file_sets_defaults_and_flags_win() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("serve.toml");
+        std::fs::write(
+            &path,
+            "queue-capacity = 7\ntile = 64\nauth_token = [\"a\", \"b\"]\nresult_ttl = \"2h\"\nlog_format = \"json\"\n",
+        )
+        .unwrap();
+        let p = path.to_str().unwrap();
+        let a = parse_serve_args(["serve", "--config", p, "--tile", "32"]).unwrap();
+        assert_eq!(a.queue_capacity, 7);
+        assert_eq!(a.tile, 32);
+        assert_eq!(a.auth_tokens, vec![Secret("a".into()), Secret("b".into())]);
+        assert_eq!(a.result_ttl, Duration::from_secs(7200));
+        assert_eq!(a.log_format, LogFormat::Json);
+        assert!(!format!("{a:?}").contains("\"a\""), "tokens must not be printed");
+    }
+
+    #[test]
+    fn unknown_config_keys_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("serve.toml");
+        std::fs::write(&path, "queue_capacty = 7\n").unwrap();
+        let err = parse_serve_args(["serve", "--config", path.to_str().unwrap()]).unwrap_err();
+        assert!(err.to_string().contains("queue_capacty"), "{err}");
+    }
+}

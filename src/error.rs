@@ -1,0 +1,87 @@
+//! The one error type of the daemon's core, shared by both transports.
+//!
+//! Each transport maps it with an exhaustive `match` (no catch-all arm), so a new variant
+//! cannot be added without deciding its HTTP status and its gRPC code:
+//! `http::error` and `grpc::status`. The table is repeated in `docs/api.md`.
+//!
+//! | variant | HTTP | gRPC |
+//! |---|---|---|
+//! | `BadRequest` | 400 | INVALID_ARGUMENT |
+//! | `InvalidFrame` | 422 | INVALID_ARGUMENT |
+//! | `TooLarge` | 413 | INVALID_ARGUMENT |
+//! | `Unauthenticated` | 401 | UNAUTHENTICATED |
+//! | `NotFound` | 404 | NOT_FOUND |
+//! | `Conflict` | 409 | FAILED_PRECONDITION |
+//! | `InProgress` | 409 | ABORTED |
+//! | `QueueFull` | 429 + `Retry-After` | RESOURCE_EXHAUSTED + `retry-after` |
+//! | `Unavailable` | 503 | UNAVAILABLE |
+//! | `Internal` | 500 | INTERNAL |
+
+use crate::frame::FrameError;
+
+/// Why a request could not be served.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The request itself is malformed: unknown option, bad JSON, bad chunk order.
+    #[error("{0}")]
+    BadRequest(String),
+    /// The frame (or reference) is not usable; the message names the channel or field.
+    #[error("{0}")]
+    InvalidFrame(String),
+    /// Body or frame over a configured limit.
+    #[error("{0}")]
+    TooLarge(String),
+    #[error("{0}")]
+    Unauthenticated(String),
+    #[error("{0}")]
+    NotFound(String),
+    /// The job is not in a state that allows the operation (e.g. fetching the result of a
+    /// job that has not succeeded, cancelling a finished job).
+    #[error("{0}")]
+    Conflict(String),
+    /// A submission with the same idempotency key is still being uploaded.
+    #[error("{0}")]
+    InProgress(String),
+    /// The queue is at capacity; retry after `retry_after_s` seconds.
+    #[error("the queue is full ({capacity} jobs); retry in {retry_after_s} s")]
+    QueueFull { capacity: usize, retry_after_s: u64 },
+    /// Not ready (models loading) or draining for shutdown.
+    #[error("{0}")]
+    Unavailable(String),
+    /// A bug or an I/O failure on the daemon's side. The message is logged in full and
+    /// returned to clients (it names no secret: paths under the data directory at most).
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl Error {
+    /// Stable machine-readable code, used in JSON error bodies.
+    pub fn code(&self) -> &'static str {
+        match self {
+            Error::BadRequest(_) => "bad_request",
+            Error::InvalidFrame(_) => "invalid_frame",
+            Error::TooLarge(_) => "too_large",
+            Error::Unauthenticated(_) => "unauthenticated",
+            Error::NotFound(_) => "not_found",
+            Error::Conflict(_) => "conflict",
+            Error::InProgress(_) => "in_progress",
+            Error::QueueFull { .. } => "queue_full",
+            Error::Unavailable(_) => "unavailable",
+            Error::Internal(_) => "internal",
+        }
+    }
+
+    pub fn internal(context: &str, e: impl std::fmt::Display) -> Error {
+        Error::Internal(format!("{context}: {e}"))
+    }
+
+    /// Prefixes the message of a frame error with which upload it concerns.
+    pub fn frame(which: &str, e: FrameError) -> Error {
+        match e {
+            FrameError::TooLarge { .. } => Error::TooLarge(format!("{which}: {e}")),
+            other => Error::InvalidFrame(format!("{which}: {other}")),
+        }
+    }
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -1,0 +1,524 @@
+//! The gRPC transport (tonic): `mcdenoise.v1.Denoiser` (proto/mcdenoise/v1/denoise.proto),
+//! the standard `grpc.health.v1.Health` service and server reflection (v1 and v1alpha),
+//! over the same [`JobService`] as the HTTP API.
+
+use std::sync::Arc;
+
+use futures_util::stream::{BoxStream, StreamExt};
+use tokio_util::sync::CancellationToken;
+use tonic::metadata::MetadataValue;
+use tonic::service::interceptor::InterceptedService;
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::config::Secret;
+use crate::engine::Variant;
+use crate::error::Error;
+use crate::jobs::{
+    Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, Layer, ListFilter, Phase, Priority, UploadPart,
+};
+
+/// Generated from `proto/mcdenoise/v1/denoise.proto` at build time.
+#[allow(clippy::all, missing_docs)]
+pub mod pb {
+    tonic::include_proto!("mcdenoise.v1");
+
+    /// Encoded descriptors of the proto, served by reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/mcdenoise_v1_descriptor.bin"));
+}
+
+use pb::denoiser_server::{Denoiser, DenoiserServer};
+
+/// Largest gRPC message accepted or sent: chunks of up to 4 MiB plus framing.
+pub const MAX_MESSAGE_BYTES: usize = 4 * 1024 * 1024 + 64 * 1024;
+/// Size of the chunks of `FetchResult`.
+pub const RESULT_CHUNK_BYTES: usize = 1024 * 1024;
+
+/// The gRPC status of each error (exhaustive: a new variant must be mapped here).
+/// `QueueFull` carries a `retry-after` metadata entry in seconds.
+pub fn status(e: &Error) -> Status {
+    let message = e.to_string();
+    match e {
+        Error::BadRequest(_) | Error::InvalidFrame(_) | Error::TooLarge(_) => Status::invalid_argument(message),
+        Error::Unauthenticated(_) => Status::unauthenticated(message),
+        Error::NotFound(_) => Status::not_found(message),
+        Error::Conflict(_) => Status::failed_precondition(message),
+        Error::InProgress(_) => Status::aborted(message),
+        Error::QueueFull { retry_after_s, .. } => {
+            let mut s = Status::resource_exhausted(message);
+            s.metadata_mut().insert("retry-after", MetadataValue::from(*retry_after_s));
+            s
+        }
+        Error::Unavailable(_) => Status::unavailable(message),
+        Error::Internal(_) => {
+            tracing::error!(error = %message, "grpc call failed");
+            Status::internal(message)
+        }
+    }
+}
+
+fn invalid(message: impl Into<String>) -> Status {
+    status(&Error::BadRequest(message.into()))
+}
+
+// --- Conversions -----------------------------------------------------------------------
+
+fn state_pb(s: JobState) -> pb::JobState {
+    match s {
+        JobState::Queued => pb::JobState::Queued,
+        JobState::Running => pb::JobState::Running,
+        JobState::Succeeded => pb::JobState::Succeeded,
+        JobState::Failed => pb::JobState::Failed,
+        JobState::Cancelled => pb::JobState::Cancelled,
+    }
+}
+
+fn state_from_pb(v: i32) -> Result<Option<JobState>, Status> {
+    Ok(match pb::JobState::try_from(v).map_err(|_| invalid(format!("unknown job state {v}")))? {
+        pb::JobState::Unspecified => None,
+        pb::JobState::Queued => Some(JobState::Queued),
+        pb::JobState::Running => Some(JobState::Running),
+        pb::JobState::Succeeded => Some(JobState::Succeeded),
+        pb::JobState::Failed => Some(JobState::Failed),
+        pb::JobState::Cancelled => Some(JobState::Cancelled),
+    })
+}
+
+fn priority_pb(p: Priority) -> pb::Priority {
+    match p {
+        Priority::Low => pb::Priority::Low,
+        Priority::Normal => pb::Priority::Normal,
+        Priority::High => pb::Priority::High,
+    }
+}
+
+fn priority_from_pb(v: i32) -> Result<Option<Priority>, Status> {
+    Ok(match pb::Priority::try_from(v).map_err(|_| invalid(format!("unknown priority {v}")))? {
+        pb::Priority::Unspecified => None,
+        pb::Priority::Low => Some(Priority::Low),
+        pb::Priority::Normal => Some(Priority::Normal),
+        pb::Priority::High => Some(Priority::High),
+    })
+}
+
+/// Job options from their protobuf form.
+pub fn options_from_pb(o: Option<pb::JobOptions>) -> Result<JobOptions, Status> {
+    let o = o.unwrap_or_default();
+    let mut layers = Vec::new();
+    for l in &o.layers {
+        layers.push(
+            Layer::parse(l).ok_or_else(|| invalid(format!("unknown layer `{l}` (expected diffuse or specular)")))?,
+        );
+    }
+    let variant =
+        match pb::Variant::try_from(o.variant).map_err(|_| invalid(format!("unknown variant {}", o.variant)))? {
+            pb::Variant::Unspecified => None,
+            pb::Variant::Full => Some(Variant::Full),
+            pb::Variant::Nocov => Some(Variant::Nocov),
+        };
+    Ok(JobOptions {
+        priority: priority_from_pb(o.priority)?.unwrap_or_default(),
+        layers,
+        idempotency_key: Some(o.idempotency_key).filter(|s| !s.is_empty()),
+        label: Some(o.label).filter(|s| !s.is_empty()),
+        variant,
+        deadline_seconds: Some(o.deadline_seconds).filter(|s| *s > 0),
+    })
+}
+
+/// The protobuf form of a job.
+pub fn job_pb(s: &JobStatus) -> pb::Job {
+    let r = &s.record;
+    pb::Job {
+        id: r.id.clone(),
+        state: state_pb(r.state) as i32,
+        priority: priority_pb(r.options.priority) as i32,
+        label: r.options.label.clone().unwrap_or_default(),
+        idempotency_key: r.options.idempotency_key.clone().unwrap_or_default(),
+        queue_position: s.queue_position,
+        progress: Some(pb::Progress { tiles_done: r.progress.tiles_done, tiles_total: r.progress.tiles_total }),
+        timings: r.timings.map(|t| pb::StageTimings {
+            queue: t.queue,
+            decode: t.decode,
+            preprocess: t.preprocess,
+            inference: t.inference,
+            reconstruction: t.reconstruction,
+            encode: t.encode,
+            total: t.total,
+        }),
+        error: r.error.as_ref().map(|e| pb::JobError { code: e.code.name().to_string(), message: e.message.clone() }),
+        metrics: r.metrics.map(|m| {
+            let q = |q: crate::jobs::QualityMetrics| pb::QualityMetrics {
+                relmse: q.relmse,
+                dssim: q.dssim,
+                psnr: q.psnr,
+                smape: q.smape,
+            };
+            pb::JobMetrics { input: Some(q(m.input)), output: Some(q(m.output)) }
+        }),
+        sanitized: r
+            .sanitized
+            .as_ref()
+            .map(|c| pb::Sanitized { total: c.total, by_buffer: c.by_buffer.clone().into_iter().collect() }),
+        width: r.width,
+        height: r.height,
+        variant: r.variant.map(|v| v.name().to_string()).unwrap_or_default(),
+        layers: r.options.layers.iter().map(|l| l.name().to_string()).collect(),
+        attempts: r.attempts,
+        cancel_requested: r.cancel_requested,
+        has_reference: r.has_reference,
+        input_bytes: r.input_bytes,
+        result_bytes: r.result_bytes.unwrap_or(0),
+        created_at_ms: r.created_at_ms,
+        started_at_ms: r.started_at_ms.unwrap_or(0),
+        finished_at_ms: r.finished_at_ms.unwrap_or(0),
+        expires_at_ms: r.expires_at_ms.unwrap_or(0),
+        deadline_at_ms: r.deadline_at_ms.unwrap_or(0),
+    }
+}
+
+/// The protobuf form of an event.
+pub fn event_pb(job_id: &str, ev: &JobEvent) -> pb::JobEvent {
+    let mut out = pb::JobEvent { job_id: job_id.to_string(), ..Default::default() };
+    let kind = match ev {
+        JobEvent::Queued { status } => {
+            out.queue_position = status.queue_position;
+            out.job = Some(job_pb(status));
+            pb::EventType::Queued
+        }
+        JobEvent::Started { attempt } => {
+            out.attempt = *attempt;
+            pb::EventType::Started
+        }
+        JobEvent::Progress(p) => {
+            out.progress = Some(pb::Progress { tiles_done: p.tiles_done, tiles_total: p.tiles_total });
+            pb::EventType::Progress
+        }
+        JobEvent::Succeeded(s) => {
+            out.job = Some(job_pb(s));
+            pb::EventType::Succeeded
+        }
+        JobEvent::Failed(s) => {
+            out.job = Some(job_pb(s));
+            pb::EventType::Failed
+        }
+        JobEvent::Cancelled(s) => {
+            out.job = Some(job_pb(s));
+            pb::EventType::Cancelled
+        }
+    };
+    out.r#type = kind as i32;
+    out
+}
+
+// --- The service ---------------------------------------------------------------------------
+
+/// `mcdenoise.v1.Denoiser` over a [`JobService`].
+#[derive(Clone)]
+pub struct Api {
+    service: JobService,
+    shutdown: CancellationToken,
+}
+
+impl Api {
+    pub fn new(service: JobService, shutdown: CancellationToken) -> Api {
+        Api { service, shutdown }
+    }
+
+    fn observe<T>(&self, method: &str, result: Result<T, Status>) -> Result<T, Status> {
+        let code = match &result {
+            Ok(_) => "OK".to_string(),
+            Err(s) => format!("{:?}", s.code()),
+        };
+        self.service.telemetry().grpc_request(method, &code);
+        result
+    }
+
+    async fn blocking<T: Send + 'static>(
+        &self,
+        f: impl FnOnce(&JobService) -> Result<T, Error> + Send + 'static,
+    ) -> Result<T, Status> {
+        let service = self.service.clone();
+        tokio::task::spawn_blocking(move || f(&service))
+            .await
+            .map_err(|e| status(&Error::internal("task", e)))?
+            .map_err(|e| status(&e))
+    }
+
+    async fn submit(&self, mut stream: Streaming<pb::SubmitJobRequest>) -> Result<pb::Job, Error> {
+        use pb::submit_job_request::Message;
+        let first = stream.message().await.map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
+        let header = match first.and_then(|m| m.message) {
+            Some(Message::Header(h)) => h,
+            Some(Message::Chunk(_)) => {
+                return Err(Error::BadRequest("the first message must be a `header`, not a `chunk`".into()))
+            }
+            None => return Err(Error::BadRequest("empty upload: the first message must be a `header`".into())),
+        };
+        let options = options_from_pb(header.options).map_err(|s| Error::BadRequest(s.message().to_string()))?;
+        if header.frame_size == 0 {
+            return Err(Error::BadRequest("header.frame_size must be the frame's size in bytes".into()));
+        }
+        let max = self.service.settings().max_body_bytes;
+        let declared = header.frame_size.saturating_add(header.reference_size);
+        if declared > max {
+            return Err(Error::TooLarge(format!("the upload declares {declared} bytes, over the limit of {max}")));
+        }
+        let mut ticket = match self.service.admit(options, "grpc")? {
+            Admission::Existing(status) => return Ok(job_pb(&status)),
+            Admission::New(t) => t,
+        };
+        let sizes = [(UploadPart::Frame, header.frame_size), (UploadPart::Reference, header.reference_size)];
+        let mut current = 0usize;
+        let mut sink = Some(ticket.sink(UploadPart::Frame).await?);
+        loop {
+            let msg =
+                stream.message().await.map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
+            let Some(msg) = msg else { break };
+            let chunk = match msg.message {
+                Some(Message::Chunk(c)) => c,
+                Some(Message::Header(_)) => return Err(Error::BadRequest("the header was sent twice".into())),
+                None => return Err(Error::BadRequest("a message with neither header nor chunk".into())),
+            };
+            let part = match pb::Part::try_from(chunk.part) {
+                Ok(pb::Part::Frame) => UploadPart::Frame,
+                Ok(pb::Part::Reference) => UploadPart::Reference,
+                Ok(pb::Part::Unspecified) | Err(_) => {
+                    return Err(Error::BadRequest("every chunk must name its part (FRAME or REFERENCE)".into()))
+                }
+            };
+            // Move on to the reference once the frame is complete.
+            let (expected_part, expected_size) = sizes[current];
+            let done = sink.as_ref().map_or(0, |s| s.written());
+            if part != expected_part {
+                if expected_part == UploadPart::Frame && part == UploadPart::Reference {
+                    return Err(Error::BadRequest(format!(
+                        "a reference chunk arrived after {done} of the frame's {expected_size} bytes; send the frame first"
+                    )));
+                }
+                return Err(Error::BadRequest("frame chunks must all come before the reference's".into()));
+            }
+            if done + chunk.data.len() as u64 > expected_size {
+                return Err(Error::BadRequest(format!(
+                    "the {} is larger than the {expected_size} bytes declared in the header",
+                    part.name()
+                )));
+            }
+            let s = sink.as_mut().expect("a sink is open while data is expected");
+            s.write(&chunk.data).await?;
+            if s.written() == expected_size {
+                ticket.finish(sink.take().expect("open")).await?;
+                current += 1;
+                if current < sizes.len() && sizes[current].1 > 0 {
+                    sink = Some(ticket.sink(sizes[current].0).await?);
+                } else {
+                    // Everything declared has arrived; anything more is an error below.
+                    current = sizes.len();
+                    break;
+                }
+            }
+        }
+        if current < sizes.len() {
+            let (part, size) = sizes[current];
+            let got = sink.as_ref().map_or(0, |s| s.written());
+            return Err(Error::BadRequest(format!(
+                "the upload ended after {got} of the {size} bytes declared for the {}",
+                part.name()
+            )));
+        }
+        if let Some(extra) = stream.message().await.map_err(|s| Error::BadRequest(s.message().to_string()))? {
+            if extra.message.is_some() {
+                return Err(Error::BadRequest("more data than the sizes declared in the header".into()));
+            }
+        }
+        let status = ticket.commit().await?;
+        Ok(job_pb(&status))
+    }
+}
+
+type EventStream = BoxStream<'static, Result<pb::JobEvent, Status>>;
+type ChunkStream = BoxStream<'static, Result<pb::ResultChunk, Status>>;
+
+#[tonic::async_trait]
+impl Denoiser for Api {
+    async fn submit_job(&self, request: Request<Streaming<pb::SubmitJobRequest>>) -> Result<Response<pb::Job>, Status> {
+        let result = self.submit(request.into_inner()).await;
+        if let Err(e) = &result {
+            self.service.note_rejection(e);
+        }
+        self.observe("SubmitJob", result.map(Response::new).map_err(|e| status(&e)))
+    }
+
+    async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
+        let result = self.service.get(&request.into_inner().id).map(|s| Response::new(job_pb(&s)));
+        self.observe("GetJob", result.map_err(|e| status(&e)))
+    }
+
+    async fn list_jobs(&self, request: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let r = request.into_inner();
+        let result = (|| {
+            let filter = ListFilter {
+                state: state_from_pb(r.state)?,
+                priority: priority_from_pb(r.priority)?,
+                label: Some(r.label).filter(|s| !s.is_empty()),
+                limit: (r.page_size > 0).then_some(r.page_size as usize),
+                after: Some(r.page_token).filter(|s| !s.is_empty()),
+            };
+            let (jobs, next) = self.service.list(&filter).map_err(|e| status(&e))?;
+            Ok(Response::new(pb::ListJobsResponse {
+                jobs: jobs.iter().map(job_pb).collect(),
+                next_page_token: next.unwrap_or_default(),
+            }))
+        })();
+        self.observe("ListJobs", result)
+    }
+
+    async fn cancel_job(&self, request: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
+        let id = request.into_inner().id;
+        let result = self.blocking(move |s| s.cancel(&id)).await.map(|s| Response::new(job_pb(&s)));
+        self.observe("CancelJob", result)
+    }
+
+    async fn delete_job(
+        &self,
+        request: Request<pb::DeleteJobRequest>,
+    ) -> Result<Response<pb::DeleteJobResponse>, Status> {
+        let id = request.into_inner().id;
+        let result = self.blocking(move |s| s.delete(&id)).await.map(|()| Response::new(pb::DeleteJobResponse {}));
+        self.observe("DeleteJob", result)
+    }
+
+    type WatchJobStream = EventStream;
+
+    async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
+        let id = request.into_inner().id;
+        let result = self.service.events(&id).map_err(|e| status(&e)).map(|events| {
+            let stream = events
+                .map(move |ev| Ok(event_pb(&id, &ev)))
+                .take_until(self.shutdown.clone().cancelled_owned())
+                .boxed();
+            Response::new(stream)
+        });
+        self.observe("WatchJob", result)
+    }
+
+    type FetchResultStream = ChunkStream;
+
+    async fn fetch_result(&self, request: Request<pb::FetchResultRequest>) -> Result<Response<ChunkStream>, Status> {
+        let id = request.into_inner().id;
+        let result = self.blocking(move |s| s.open_result(&id)).await.map(|(file, len)| {
+            let telemetry = self.service.telemetry().clone();
+            let mut first = true;
+            let stream =
+                tokio_util::io::ReaderStream::with_capacity(tokio::fs::File::from_std(file), RESULT_CHUNK_BYTES)
+                    .map(move |chunk| match chunk {
+                        Ok(data) => {
+                            telemetry.bytes_sent("grpc", data.len() as u64);
+                            let total_size = if std::mem::take(&mut first) { len } else { 0 };
+                            Ok(pb::ResultChunk { data: data.to_vec(), total_size })
+                        }
+                        Err(e) => Err(status(&Error::internal("reading the result", e))),
+                    })
+                    .boxed();
+            Response::new(stream)
+        });
+        self.observe("FetchResult", result)
+    }
+
+    async fn list_models(&self, _: Request<pb::ListModelsRequest>) -> Result<Response<pb::ListModelsResponse>, Status> {
+        let result = match self.service.models() {
+            None => Err(status(&Error::Unavailable("the models are still loading".into()))),
+            Some(models) => {
+                let s = self.service.settings();
+                Ok(Response::new(pb::ListModelsResponse {
+                    models: models
+                        .iter()
+                        .map(|m| pb::ModelInfo {
+                            variant: m.variant.clone(),
+                            component: m.component.clone(),
+                            file: m.file.clone(),
+                            receptive_radius: m.receptive_radius as u32,
+                            flops_per_pixel: m.flops_per_pixel,
+                            architecture: m.architecture.clone(),
+                            sha256: m.sha256.clone(),
+                            contract: m.contract.clone(),
+                        })
+                        .collect(),
+                    tile: s.engine.tile as u32,
+                    workers: s.workers as u32,
+                    threads_per_worker: s.engine.threads as u32,
+                }))
+            }
+        };
+        self.observe("ListModels", result)
+    }
+}
+
+/// Checks `authorization: Bearer <token>` metadata when tokens are configured.
+#[derive(Clone)]
+pub struct Auth {
+    tokens: Arc<Vec<Secret>>,
+}
+
+impl tonic::service::Interceptor for Auth {
+    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+        if self.tokens.is_empty() {
+            return Ok(request);
+        }
+        let value = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
+        match crate::http::bearer(value) {
+            Some(t) if crate::http::token_matches(&self.tokens, t) => Ok(request),
+            Some(_) => Err(status(&Error::Unauthenticated("invalid bearer token".into()))),
+            None => Err(status(&Error::Unauthenticated(
+                "missing bearer token (metadata authorization: Bearer <token>)".into(),
+            ))),
+        }
+    }
+}
+
+/// Serves gRPC on `listener` until `shutdown` is cancelled.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    service: JobService,
+    tokens: Arc<Vec<Secret>>,
+    shutdown: CancellationToken,
+) -> anyhow::Result<()> {
+    let auth = Auth { tokens };
+    let api = DenoiserServer::new(Api::new(service.clone(), shutdown.clone()))
+        .max_decoding_message_size(MAX_MESSAGE_BYTES)
+        .max_encoding_message_size(MAX_MESSAGE_BYTES);
+    let (reporter, health) = tonic_health::server::health_reporter();
+    let reflection_v1 = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    let reflection_v1alpha = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1alpha()?;
+
+    // Health follows readiness: SERVING only when models are loaded and not draining.
+    let mut phase = service.subscribe_phase();
+    let health_task = tokio::spawn(async move {
+        loop {
+            let serving = *phase.borrow_and_update() == Phase::Ready;
+            let status =
+                if serving { tonic_health::ServingStatus::Serving } else { tonic_health::ServingStatus::NotServing };
+            reporter.set_service_status("", status).await;
+            reporter.set_service_status("mcdenoise.v1.Denoiser", status).await;
+            if phase.changed().await.is_err() {
+                break;
+            }
+        }
+    });
+
+    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+    let result = tonic::transport::Server::builder()
+        .add_service(health)
+        .add_service(InterceptedService::new(reflection_v1, auth.clone()))
+        .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
+        .add_service(InterceptedService::new(api, auth))
+        .serve_with_incoming_shutdown(incoming, shutdown.cancelled_owned())
+        .await;
+    health_task.abort();
+    result.map_err(Into::into)
+}

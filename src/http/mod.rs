@@ -1,0 +1,467 @@
+//! The HTTP transport (axum): JSON under `/v1`, Server-Sent Events for progress, the
+//! EXR result as a download, health probes and Prometheus metrics. Every handler is a thin
+//! translation onto [`JobService`]; the reference is `docs/api.md` and the OpenAPI
+//! document served at `/v1/openapi.json`.
+
+mod error;
+
+use std::convert::Infallible;
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::extract::{DefaultBodyLimit, FromRequest, MatchedPath, Multipart, Path, Query, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use futures_util::{Stream, StreamExt};
+use serde::Deserialize;
+use serde_json::{json, Value};
+use tokio_util::sync::CancellationToken;
+
+pub use error::ApiError;
+
+use crate::config::Secret;
+use crate::engine::Variant;
+use crate::error::Error;
+use crate::jobs::{
+    rfc3339, Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, Layer, ListFilter, Phase, Priority,
+    UploadPart,
+};
+
+/// The OpenAPI 3.1 description of this API.
+pub const OPENAPI: &str = include_str!("openapi.json");
+
+/// Shared by every handler.
+#[derive(Clone)]
+pub struct AppState {
+    pub service: JobService,
+    /// Accepted bearer tokens; empty disables authentication.
+    pub tokens: Arc<Vec<Secret>>,
+    /// Cancelled when the server stops: open event streams end.
+    pub shutdown: CancellationToken,
+}
+
+/// The whole HTTP API.
+pub fn router(state: AppState) -> Router {
+    let protected = Router::new()
+        .route("/v1/jobs", post(submit).get(list))
+        .route("/v1/jobs/{id}", get(get_job).delete(delete_job))
+        .route("/v1/jobs/{id}/cancel", post(cancel))
+        .route("/v1/jobs/{id}/events", get(events))
+        .route("/v1/jobs/{id}/result", get(result))
+        .route("/v1/models", get(models))
+        .route("/v1/openapi.json", get(openapi))
+        .route("/metrics", get(metrics))
+        .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
+    Router::new()
+        .route("/livez", get(livez))
+        .route("/readyz", get(readyz))
+        .merge(protected)
+        .fallback(|| async { ApiError::from(Error::NotFound("no such route".into())) })
+        // Uploads are streamed to disk and limited by `--max-body-bytes` as they arrive.
+        .layer(DefaultBodyLimit::disable())
+        .layer(middleware::from_fn_with_state(state.clone(), observe))
+        .with_state(state)
+}
+
+/// Logs each request and counts it by route template and status.
+async fn observe(State(app): State<AppState>, request: Request, next: Next) -> Response {
+    let route = request.extensions().get::<MatchedPath>().map(|p| p.as_str().to_owned());
+    let method = request.method().clone();
+    let t = std::time::Instant::now();
+    let response = next.run(request).await;
+    let route = route.as_deref().unwrap_or("unmatched");
+    let status = response.status();
+    app.service.telemetry().http_request(route, status.as_u16());
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    if status.is_server_error() {
+        tracing::error!(%method, route, status = status.as_u16(), ms, "http request");
+    } else if route != "/livez" && route != "/readyz" && route != "/metrics" {
+        tracing::debug!(%method, route, status = status.as_u16(), ms, "http request");
+    }
+    response
+}
+
+/// Constant-time comparison, so that response timing says nothing about a token.
+pub fn token_matches(tokens: &[Secret], presented: &str) -> bool {
+    tokens.iter().fold(false, |found, t| {
+        let a = t.0.as_bytes();
+        let b = presented.as_bytes();
+        let same = a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0;
+        found | same
+    })
+}
+
+/// The token of an `Authorization: Bearer <token>` value.
+pub fn bearer(value: Option<&str>) -> Option<&str> {
+    let v = value?.trim();
+    let (scheme, token) = v.split_once(' ')?;
+    scheme.eq_ignore_ascii_case("bearer").then(|| token.trim())
+}
+
+async fn authenticate(State(app): State<AppState>, request: Request, next: Next) -> Response {
+    if app.tokens.is_empty() {
+        return next.run(request).await;
+    }
+    let presented = bearer(request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()));
+    match presented {
+        Some(token) if token_matches(&app.tokens, token) => next.run(request).await,
+        Some(_) => ApiError::from(Error::Unauthenticated("invalid bearer token".into())).into_response(),
+        None => ApiError::from(Error::Unauthenticated("missing bearer token (Authorization: Bearer <token>)".into()))
+            .into_response(),
+    }
+}
+
+// --- Health, metrics, models ---------------------------------------------------------------
+
+async fn livez() -> Json<Value> {
+    Json(json!({ "status": "alive" }))
+}
+
+async fn readyz(State(app): State<AppState>) -> Response {
+    let phase = app.service.phase();
+    let code = if phase == Phase::Ready { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
+    (code, Json(json!({ "ready": phase == Phase::Ready, "phase": phase }))).into_response()
+}
+
+async fn metrics(State(app): State<AppState>) -> Response {
+    (
+        [(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")],
+        app.service.telemetry().render(),
+    )
+        .into_response()
+}
+
+async fn models(State(app): State<AppState>) -> Result<Json<Value>, ApiError> {
+    let models = app.service.models().ok_or_else(|| Error::Unavailable("the models are still loading".into()))?;
+    let s = app.service.settings();
+    Ok(Json(json!({
+        "contract": crate::engine::contract::CONTRACT_VERSION,
+        "tile": s.engine.tile,
+        "workers": s.workers,
+        "threads_per_worker": s.engine.threads,
+        "models": models,
+    })))
+}
+
+async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/json")], OPENAPI).into_response()
+}
+
+// --- Jobs ----------------------------------------------------------------------------------
+
+/// The JSON form of a job.
+pub fn job_json(s: &JobStatus) -> Value {
+    let r = &s.record;
+    let base = format!("/v1/jobs/{}", r.id);
+    json!({
+        "id": r.id,
+        "state": r.state,
+        "priority": r.options.priority,
+        "label": r.options.label,
+        "idempotency_key": r.options.idempotency_key,
+        "queue_position": (r.state == JobState::Queued).then_some(s.queue_position),
+        "progress": r.progress,
+        "width": r.width,
+        "height": r.height,
+        "input_bytes": r.input_bytes,
+        "has_reference": r.has_reference,
+        "layers": r.options.layers,
+        "requested_variant": r.options.variant,
+        "variant": r.variant,
+        "attempts": r.attempts,
+        "cancel_requested": r.cancel_requested,
+        "timings_ms": r.timings,
+        "metrics": r.metrics,
+        "sanitized": r.sanitized,
+        "error": r.error,
+        "result_bytes": r.result_bytes,
+        "created_at": rfc3339(r.created_at_ms),
+        "started_at": r.started_at_ms.map(rfc3339),
+        "finished_at": r.finished_at_ms.map(rfc3339),
+        "deadline_at": r.deadline_at_ms.map(rfc3339),
+        "expires_at": r.expires_at_ms.map(rfc3339),
+        "urls": {
+            "self": base,
+            "events": format!("{base}/events"),
+            "result": format!("{base}/result"),
+            "cancel": format!("{base}/cancel"),
+        },
+    })
+}
+
+/// Options of a raw-body submission, from the query string.
+#[derive(Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct SubmitQuery {
+    priority: Option<String>,
+    /// Comma-separated.
+    layers: Option<String>,
+    label: Option<String>,
+    variant: Option<String>,
+    deadline_seconds: Option<u64>,
+    idempotency_key: Option<String>,
+}
+
+fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions, Error> {
+    let priority = match q.priority.as_deref() {
+        None | Some("") => Priority::default(),
+        Some(p) => Priority::parse(p)
+            .ok_or_else(|| Error::BadRequest(format!("unknown priority `{p}` (expected high, normal or low)")))?,
+    };
+    let mut layers = Vec::new();
+    for l in q.layers.as_deref().unwrap_or("").split(',').map(str::trim).filter(|l| !l.is_empty()) {
+        layers.push(
+            Layer::parse(l)
+                .ok_or_else(|| Error::BadRequest(format!("unknown layer `{l}` (expected diffuse or specular)")))?,
+        );
+    }
+    let variant = match q.variant.as_deref() {
+        None | Some("") | Some("auto") => None,
+        Some(v) => Some(
+            Variant::parse(v)
+                .ok_or_else(|| Error::BadRequest(format!("unknown variant `{v}` (expected auto, full or nocov)")))?,
+        ),
+    };
+    Ok(JobOptions {
+        priority,
+        layers,
+        idempotency_key: q.idempotency_key.or_else(|| idempotency_header(headers)),
+        label: q.label,
+        variant,
+        deadline_seconds: q.deadline_seconds,
+    })
+}
+
+fn idempotency_header(headers: &HeaderMap) -> Option<String> {
+    headers.get("idempotency-key").and_then(|v| v.to_str().ok()).map(str::to_owned)
+}
+
+fn accepted(status: &JobStatus, replayed: bool) -> Response {
+    let mut response = (StatusCode::ACCEPTED, Json(job_json(status))).into_response();
+    let h = response.headers_mut();
+    if let Ok(v) = HeaderValue::from_str(&format!("/v1/jobs/{}", status.record.id)) {
+        h.insert(header::LOCATION, v);
+    }
+    if replayed {
+        h.insert("idempotent-replayed", HeaderValue::from_static("true"));
+    }
+    response
+}
+
+/// `POST /v1/jobs`: a raw EXR body (options in the query string) or multipart
+/// (`options` JSON part first, then `frame`, then optionally `reference`).
+async fn submit(State(app): State<AppState>, request: Request) -> Result<Response, ApiError> {
+    let service = app.service.clone();
+    let result = submit_inner(app, request).await;
+    if let Err(e) = &result {
+        service.note_rejection(&e.0);
+    }
+    result
+}
+
+async fn submit_inner(app: AppState, request: Request) -> Result<Response, ApiError> {
+    let max = app.service.settings().max_body_bytes;
+    let declared =
+        request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > max) {
+        return Err(Error::TooLarge(format!("the upload is over the limit of {max} bytes")).into());
+    }
+    let query: SubmitQuery = match request.uri().query() {
+        None => SubmitQuery::default(),
+        Some(q) => serde_urlencoded_query(q)?,
+    };
+    let options = options_from_query(query, request.headers())?;
+    let content_type =
+        request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
+    if content_type.starts_with("multipart/form-data") {
+        return submit_multipart(app, options, request).await;
+    }
+    if !(content_type.is_empty()
+        || content_type.starts_with("image/x-exr")
+        || content_type.starts_with("application/octet-stream"))
+    {
+        return Err(Error::BadRequest(format!(
+            "unsupported content type `{content_type}`: send the frame as image/x-exr or multipart/form-data"
+        ))
+        .into());
+    }
+    let mut ticket = match app.service.admit(options, "http")? {
+        Admission::Existing(status) => return Ok(accepted(&status, true)),
+        Admission::New(t) => t,
+    };
+    let mut sink = ticket.sink(UploadPart::Frame).await?;
+    let mut body = request.into_body().into_data_stream();
+    while let Some(chunk) = body.next().await {
+        let chunk = chunk.map_err(|e| Error::BadRequest(format!("the upload was interrupted: {e}")))?;
+        sink.write(&chunk).await?;
+    }
+    if sink.written() == 0 {
+        return Err(Error::BadRequest("the request body is empty: send the EXR frame as the body".into()).into());
+    }
+    ticket.finish(sink).await?;
+    let status = ticket.commit().await?;
+    Ok(accepted(&status, false))
+}
+
+fn serde_urlencoded_query(q: &str) -> Result<SubmitQuery, Error> {
+    Query::<SubmitQuery>::try_from_uri(&format!("/?{q}").parse().map_err(|_| Error::BadRequest("bad query".into()))?)
+        .map(|Query(q)| q)
+        .map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))
+}
+
+async fn submit_multipart(app: AppState, mut options: JobOptions, request: Request) -> Result<Response, ApiError> {
+    let header_key = idempotency_header(request.headers());
+    let mut multipart = Multipart::from_request(request, &())
+        .await
+        .map_err(|e| Error::BadRequest(format!("bad multipart body: {}", e.body_text())))?;
+    let mut ticket = None;
+    let bad = |e: axum::extract::multipart::MultipartError| {
+        Error::BadRequest(format!("bad multipart body: {}", e.body_text()))
+    };
+    while let Some(mut field) = multipart.next_field().await.map_err(bad)? {
+        let name = field.name().unwrap_or("").to_string();
+        match name.as_str() {
+            "options" => {
+                if ticket.is_some() {
+                    return Err(Error::BadRequest("the `options` part must come before `frame`".into()).into());
+                }
+                let text = field.text().await.map_err(bad)?;
+                if text.len() > 64 * 1024 {
+                    return Err(Error::BadRequest("the `options` part is over 64 KiB".into()).into());
+                }
+                options = serde_json::from_str::<JobOptions>(&text)
+                    .map_err(|e| Error::BadRequest(format!("bad `options` JSON: {e}")))?;
+                if options.idempotency_key.is_none() {
+                    options.idempotency_key = header_key.clone();
+                }
+            }
+            "frame" | "reference" => {
+                let part = if name == "frame" { UploadPart::Frame } else { UploadPart::Reference };
+                if ticket.is_none() {
+                    match app.service.admit(options.clone(), "http")? {
+                        Admission::Existing(status) => return Ok(accepted(&status, true)),
+                        Admission::New(t) => ticket = Some(t),
+                    }
+                }
+                let t = ticket.as_mut().expect("admitted above");
+                let mut sink = t.sink(part).await?;
+                while let Some(chunk) = field.chunk().await.map_err(bad)? {
+                    sink.write(&chunk).await?;
+                }
+                if sink.written() == 0 {
+                    return Err(Error::BadRequest(format!("the `{name}` part is empty")).into());
+                }
+                t.finish(sink).await?;
+            }
+            other => {
+                return Err(Error::BadRequest(format!(
+                    "unknown multipart part `{other}` (expected options, frame, reference)"
+                ))
+                .into())
+            }
+        }
+    }
+    let ticket = ticket.ok_or_else(|| Error::BadRequest("no `frame` part".into()))?;
+    let status = ticket.commit().await?;
+    Ok(accepted(&status, false))
+}
+
+async fn get_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<Json<Value>, ApiError> {
+    Ok(Json(job_json(&app.service.get(&id)?)))
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ListQuery {
+    state: Option<String>,
+    priority: Option<String>,
+    label: Option<String>,
+    limit: Option<usize>,
+    page_token: Option<String>,
+}
+
+async fn list(
+    State(app): State<AppState>,
+    query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<Value>, ApiError> {
+    let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
+    let state = match q.state.as_deref() {
+        None | Some("") => None,
+        Some(s) => Some(JobState::parse(s).ok_or_else(|| Error::BadRequest(format!("unknown state `{s}`")))?),
+    };
+    let priority = match q.priority.as_deref() {
+        None | Some("") => None,
+        Some(p) => Some(Priority::parse(p).ok_or_else(|| Error::BadRequest(format!("unknown priority `{p}`")))?),
+    };
+    let filter = ListFilter { state, priority, label: q.label, limit: q.limit, after: q.page_token };
+    let (jobs, next) = app.service.list(&filter)?;
+    Ok(Json(json!({ "jobs": jobs.iter().map(job_json).collect::<Vec<_>>(), "next_page_token": next })))
+}
+
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, Error> + Send + 'static) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(f).await.map_err(|e| Error::internal("task", e))?.map_err(ApiError::from)
+}
+
+async fn cancel(State(app): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
+    let service = app.service.clone();
+    let status = blocking(move || service.cancel(&id)).await?;
+    let code = if status.record.state == JobState::Cancelled { StatusCode::OK } else { StatusCode::ACCEPTED };
+    Ok((code, Json(job_json(&status))).into_response())
+}
+
+async fn delete_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
+    let service = app.service.clone();
+    blocking(move || service.delete(&id)).await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+async fn result(State(app): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
+    let service = app.service.clone();
+    let id2 = id.clone();
+    let (file, len) = blocking(move || service.open_result(&id2)).await?;
+    let telemetry = app.service.telemetry().clone();
+    let stream = tokio_util::io::ReaderStream::with_capacity(tokio::fs::File::from_std(file), 256 * 1024).inspect(
+        move |chunk| {
+            if let Ok(c) = chunk {
+                telemetry.bytes_sent("http", c.len() as u64);
+            }
+        },
+    );
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/x-exr".to_string()),
+            (header::CONTENT_LENGTH, len.to_string()),
+            (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{id}.exr\"")),
+        ],
+        Body::from_stream(stream),
+    )
+        .into_response())
+}
+
+/// The JSON data of an SSE event.
+pub fn event_json(job_id: &str, ev: &JobEvent) -> Value {
+    match ev {
+        JobEvent::Queued { status } => job_json(status),
+        JobEvent::Started { attempt } => json!({ "id": job_id, "attempt": attempt }),
+        JobEvent::Progress(p) => {
+            json!({ "id": job_id, "tiles_done": p.tiles_done, "tiles_total": p.tiles_total })
+        }
+        JobEvent::Succeeded(s) | JobEvent::Failed(s) | JobEvent::Cancelled(s) => job_json(s),
+    }
+}
+
+/// `GET /v1/jobs/{id}/events`: Server-Sent Events, ending after the terminal event.
+async fn events(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let stream = app.service.events(&id)?;
+    let stream = stream
+        .map(move |ev| Ok(Event::default().event(ev.name()).data(event_json(&id, &ev).to_string())))
+        .take_until(app.shutdown.clone().cancelled_owned());
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}

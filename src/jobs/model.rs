@@ -1,0 +1,334 @@
+//! What a job is: its options, its persisted record, and the events it emits.
+
+use serde::{Deserialize, Serialize};
+
+use crate::engine::Variant;
+
+/// Lifecycle: `queued → running → succeeded | failed | cancelled`. A running job that is
+/// interrupted (shutdown deadline, crash) goes back to `queued` and runs again.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Cancelled,
+}
+
+impl JobState {
+    pub const ALL: [JobState; 5] =
+        [JobState::Queued, JobState::Running, JobState::Succeeded, JobState::Failed, JobState::Cancelled];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<JobState> {
+        JobState::ALL.into_iter().find(|v| v.name() == s)
+    }
+
+    pub fn is_terminal(self) -> bool {
+        matches!(self, JobState::Succeeded | JobState::Failed | JobState::Cancelled)
+    }
+}
+
+/// Priority class: higher classes are dequeued first, FIFO within a class.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Priority {
+    Low,
+    #[default]
+    Normal,
+    High,
+}
+
+impl Priority {
+    pub const ALL: [Priority; 3] = [Priority::High, Priority::Normal, Priority::Low];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Priority::Low => "low",
+            Priority::Normal => "normal",
+            Priority::High => "high",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Priority> {
+        Priority::ALL.into_iter().find(|v| v.name() == s)
+    }
+
+    /// Sort key of the queue: 0 is served first.
+    pub fn rank(self) -> u8 {
+        match self {
+            Priority::High => 0,
+            Priority::Normal => 1,
+            Priority::Low => 2,
+        }
+    }
+}
+
+/// Extra layers of the result besides `R,G,B`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Layer {
+    Diffuse,
+    Specular,
+}
+
+impl Layer {
+    pub fn name(self) -> &'static str {
+        match self {
+            Layer::Diffuse => "diffuse",
+            Layer::Specular => "specular",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Layer> {
+        [Layer::Diffuse, Layer::Specular].into_iter().find(|v| v.name() == s)
+    }
+}
+
+/// Largest accepted label and idempotency key, in bytes.
+pub const MAX_LABEL_BYTES: usize = 256;
+
+/// What a client asks for when it submits a frame.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct JobOptions {
+    pub priority: Priority,
+    pub layers: Vec<Layer>,
+    pub idempotency_key: Option<String>,
+    pub label: Option<String>,
+    /// `None` picks `full` when the frame has covariance, else `nocov`.
+    pub variant: Option<Variant>,
+    /// Seconds from submission after which the job fails; `None` uses the daemon default.
+    pub deadline_seconds: Option<u64>,
+}
+
+impl JobOptions {
+    /// Checks sizes and removes duplicate layers; empty strings count as absent.
+    pub fn normalize(mut self) -> Result<JobOptions, String> {
+        for (what, v) in [("label", &mut self.label), ("idempotency_key", &mut self.idempotency_key)] {
+            if v.as_deref() == Some("") {
+                *v = None;
+            }
+            if let Some(s) = v {
+                if s.len() > MAX_LABEL_BYTES {
+                    return Err(format!("{what} is {} bytes, at most {MAX_LABEL_BYTES} are accepted", s.len()));
+                }
+            }
+        }
+        let mut layers = Vec::new();
+        for l in self.layers {
+            if !layers.contains(&l) {
+                layers.push(l);
+            }
+        }
+        self.layers = layers;
+        if self.deadline_seconds == Some(0) {
+            self.deadline_seconds = None;
+        }
+        Ok(self)
+    }
+}
+
+/// Milliseconds per stage of the last run. `queue` is the wait before that run started.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct Timings {
+    pub queue: f64,
+    pub decode: f64,
+    pub preprocess: f64,
+    pub inference: f64,
+    pub reconstruction: f64,
+    pub encode: f64,
+    pub total: f64,
+}
+
+/// RelMSE, DSSIM, PSNR and SMAPE of one image against the reference (see
+/// [`crate::metrics`]). PSNR of identical images is infinite and is written as `null`.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct QualityMetrics {
+    pub relmse: f64,
+    pub dssim: f64,
+    #[serde(with = "finite_or_null")]
+    pub psnr: f64,
+    pub smape: f64,
+}
+
+impl From<crate::metrics::Metrics> for QualityMetrics {
+    fn from(m: crate::metrics::Metrics) -> Self {
+        QualityMetrics { relmse: m.relmse, dssim: m.dssim, psnr: m.psnr, smape: m.smape }
+    }
+}
+
+mod finite_or_null {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_finite() {
+            s.serialize_f64(*v)
+        } else {
+            s.serialize_none()
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
+    }
+}
+
+/// Metrics of the noisy input and of the denoised output against the reference.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobMetrics {
+    pub input: QualityMetrics,
+    pub output: QualityMetrics,
+}
+
+/// Non-finite samples replaced by 0 while decoding.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct SanitizedCounts {
+    pub total: u64,
+    pub by_buffer: std::collections::BTreeMap<String, u64>,
+}
+
+/// Why a job failed. `code` is stable; `message` says what exactly.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobError {
+    pub code: JobErrorCode,
+    pub message: String,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobErrorCode {
+    /// The frame could not be decoded or validated (names the channel or the defect).
+    InvalidFrame,
+    /// No loaded model fits the frame.
+    NoModel,
+    /// The job's deadline passed before it finished.
+    DeadlineExceeded,
+    /// ONNX Runtime failed.
+    Inference,
+    /// I/O or another failure on the daemon's side.
+    Internal,
+}
+
+impl JobErrorCode {
+    pub fn name(self) -> &'static str {
+        match self {
+            JobErrorCode::InvalidFrame => "invalid_frame",
+            JobErrorCode::NoModel => "no_model",
+            JobErrorCode::DeadlineExceeded => "deadline_exceeded",
+            JobErrorCode::Inference => "inference",
+            JobErrorCode::Internal => "internal",
+        }
+    }
+}
+
+/// Tiles done of the current run.
+#[derive(Clone, Copy, Debug, Default, Serialize, Deserialize, PartialEq, Eq)]
+pub struct Progress {
+    pub tiles_done: u32,
+    pub tiles_total: u32,
+}
+
+/// The persisted record of a job. Times are Unix milliseconds.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct JobRecord {
+    pub id: String,
+    /// Admission order; FIFO within a priority class follows it, also across restarts.
+    pub seq: u64,
+    pub state: JobState,
+    pub options: JobOptions,
+    pub width: u32,
+    pub height: u32,
+    pub input_bytes: u64,
+    pub has_reference: bool,
+    pub created_at_ms: i64,
+    pub started_at_ms: Option<i64>,
+    pub finished_at_ms: Option<i64>,
+    pub deadline_at_ms: Option<i64>,
+    pub expires_at_ms: Option<i64>,
+    /// Times the job was started; above 1 when a run was interrupted.
+    pub attempts: u32,
+    pub cancel_requested: bool,
+    /// The variant that ran.
+    pub variant: Option<Variant>,
+    /// Progress of the run; the final value once finished.
+    pub progress: Progress,
+    pub timings: Option<Timings>,
+    pub metrics: Option<JobMetrics>,
+    pub sanitized: Option<SanitizedCounts>,
+    pub error: Option<JobError>,
+    pub result_bytes: Option<u64>,
+}
+
+/// A job as clients see it: the record plus its live queue position.
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobStatus {
+    pub record: JobRecord,
+    /// 1-based position among queued jobs, 0 when not queued.
+    pub queue_position: u64,
+}
+
+/// What happens to a job, as streamed to watchers.
+#[derive(Clone, Debug, PartialEq)]
+pub enum JobEvent {
+    /// Emitted first to every watcher of a queued job.
+    Queued {
+        status: Box<JobStatus>,
+    },
+    Started {
+        attempt: u32,
+    },
+    Progress(Progress),
+    /// Terminal events carry the final status (metrics, timings, error).
+    Succeeded(Box<JobStatus>),
+    Failed(Box<JobStatus>),
+    Cancelled(Box<JobStatus>),
+}
+
+impl JobEvent {
+    pub fn name(&self) -> &'static str {
+        match self {
+            JobEvent::Queued { .. } => "queued",
+            JobEvent::Started { .. } => "started",
+            JobEvent::Progress(_) => "progress",
+            JobEvent::Succeeded(_) => "succeeded",
+            JobEvent::Failed(_) => "failed",
+            JobEvent::Cancelled(_) => "cancelled",
+        }
+    }
+
+    pub fn is_terminal(&self) -> bool {
+        matches!(self, JobEvent::Succeeded(_) | JobEvent::Failed(_) | JobEvent::Cancelled(_))
+    }
+
+    /// The terminal event of a finished job.
+    pub fn terminal(status: JobStatus) -> Option<JobEvent> {
+        match status.record.state {
+            JobState::Succeeded => Some(JobEvent::Succeeded(Box::new(status))),
+            JobState::Failed => Some(JobEvent::Failed(Box::new(status))),
+            JobState::Cancelled => Some(JobEvent::Cancelled(Box::new(status))),
+            JobState::Queued | JobState::Running => None,
+        }
+    }
+}
+
+/// Unix time in milliseconds.
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0)
+}
+
+/// RFC 3339 (UTC, milliseconds) of a Unix-milliseconds time.
+pub fn rfc3339(ms: i64) -> String {
+    let t = std::time::UNIX_EPOCH + std::time::Duration::from_millis(ms.max(0) as u64);
+    humantime::format_rfc3339_millis(t).to_string()
+}

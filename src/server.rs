@@ -1,0 +1,231 @@
+//! Starting and stopping the daemon: one [`JobService`], the HTTP and gRPC servers on
+//! their own listeners, the retention sweeper, and the graceful shutdown sequence.
+//!
+//! Shutdown (SIGTERM/SIGINT, or [`Server::shutdown`]):
+//! 1. readiness turns false and new submissions get 503 / UNAVAILABLE (queued jobs stay
+//!    queued, persisted, for the next start); reads, event streams and result downloads
+//!    keep working;
+//! 2. running jobs get `--shutdown-timeout` to finish; those still running then stop at
+//!    their next tile and go back to the queue;
+//! 3. workers exit, then both servers stop (open event streams end).
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use std::future::IntoFuture;
+
+use anyhow::Context;
+use tokio::net::TcpListener;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+
+use crate::config::ServeArgs;
+use crate::jobs::{JobService, Settings};
+use crate::telemetry::Telemetry;
+
+/// How long the servers get to close their connections after the drain.
+const TRANSPORT_GRACE: Duration = Duration::from_secs(10);
+/// How long workers get to stop after running jobs were told to stop at their next tile.
+const WORKER_GRACE: Duration = Duration::from_secs(60);
+
+/// A running daemon.
+pub struct Server {
+    pub http_addr: SocketAddr,
+    pub grpc_addr: SocketAddr,
+    pub service: JobService,
+    trigger: CancellationToken,
+    task: JoinHandle<anyhow::Result<()>>,
+}
+
+impl Server {
+    /// Binds the configured addresses and starts the daemon. Models load in the
+    /// background: `/livez` answers at once, `/readyz` once every worker is warmed up.
+    pub async fn start(args: ServeArgs) -> anyhow::Result<Server> {
+        let http =
+            TcpListener::bind(args.http).await.with_context(|| format!("cannot listen on {} (HTTP)", args.http))?;
+        let grpc =
+            TcpListener::bind(args.grpc).await.with_context(|| format!("cannot listen on {} (gRPC)", args.grpc))?;
+        Server::start_on(args, http, grpc).await
+    }
+
+    /// Starts the daemon on listeners that are already bound.
+    pub async fn start_on(args: ServeArgs, http: TcpListener, grpc: TcpListener) -> anyhow::Result<Server> {
+        let http_addr = http.local_addr()?;
+        let grpc_addr = grpc.local_addr()?;
+        let telemetry = Arc::new(Telemetry::new());
+        let settings = Settings::from_args(&args);
+        let data_dir = args.data_dir.clone();
+        let (service, workers) = tokio::task::spawn_blocking(move || JobService::start(&data_dir, settings, telemetry))
+            .await?
+            .context("cannot open the job store")?;
+
+        let trigger = CancellationToken::new();
+        let stop = CancellationToken::new();
+        let tokens = Arc::new(args.auth_tokens.clone());
+        let state = crate::http::AppState { service: service.clone(), tokens: tokens.clone(), shutdown: stop.clone() };
+        let http_task = tokio::spawn(
+            axum::serve(http, crate::http::router(state))
+                .with_graceful_shutdown(stop.clone().cancelled_owned())
+                .into_future(),
+        );
+        let grpc_task = tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, stop.clone()));
+        let janitor = tokio::spawn(janitor(service.clone(), args.janitor_interval, stop.clone()));
+        tracing::info!(http = %http_addr, grpc = %grpc_addr, "listening");
+
+        let task = tokio::spawn(run(
+            service.clone(),
+            workers,
+            trigger.clone(),
+            stop,
+            Transports { http: http_task, grpc: grpc_task, janitor },
+            args.shutdown_timeout,
+        ));
+        Ok(Server { http_addr, grpc_addr, service, trigger, task })
+    }
+
+    /// Starts the graceful shutdown (returns at once; see [`Server::wait`]).
+    pub fn shutdown(&self) {
+        self.trigger.cancel();
+    }
+
+    /// A token that starts the shutdown when cancelled (for signal handlers).
+    pub fn shutdown_token(&self) -> CancellationToken {
+        self.trigger.clone()
+    }
+
+    /// Waits until the daemon has stopped. An error means it could not run (e.g. the
+    /// models failed to load) or a server failed.
+    pub async fn wait(self) -> anyhow::Result<()> {
+        drop(self.service);
+        self.task.await.context("the daemon's main task panicked")?
+    }
+}
+
+struct Transports {
+    http: JoinHandle<std::io::Result<()>>,
+    grpc: JoinHandle<anyhow::Result<()>>,
+    janitor: JoinHandle<()>,
+}
+
+async fn run(
+    service: JobService,
+    workers: Vec<std::thread::JoinHandle<()>>,
+    trigger: CancellationToken,
+    stop: CancellationToken,
+    mut transports: Transports,
+    shutdown_timeout: Duration,
+) -> anyhow::Result<()> {
+    let mut fatal = service.subscribe_fatal();
+    let failure: Option<anyhow::Error> = tokio::select! {
+        _ = trigger.cancelled() => None,
+        f = fatal.wait_for(|f| f.is_some()) => Some(anyhow::anyhow!(
+            "{}", f.ok().and_then(|f| f.clone()).unwrap_or_else(|| "a worker failed".into())
+        )),
+        r = &mut transports.http => Some(anyhow::anyhow!("the HTTP server stopped: {r:?}")),
+        r = &mut transports.grpc => Some(anyhow::anyhow!("the gRPC server stopped: {r:?}")),
+    };
+    match &failure {
+        None => tracing::info!(running = service.running(), "shutting down: draining"),
+        Some(e) => tracing::error!(error = %e, "shutting down after a failure"),
+    }
+    service.begin_drain();
+    if !service.wait_idle(shutdown_timeout).await {
+        tracing::warn!(
+            running = service.running(),
+            "shutdown timeout reached: stopping running jobs at their next tile; they stay queued for the next start"
+        );
+        service.abort_running();
+        if !service.wait_idle(WORKER_GRACE).await {
+            tracing::error!("workers did not stop in time; their jobs will run again at the next start");
+        }
+    }
+    service.stop_workers();
+    let joined = tokio::task::spawn_blocking(move || {
+        for w in workers {
+            let _ = w.join();
+        }
+    });
+    if tokio::time::timeout(WORKER_GRACE, joined).await.is_err() {
+        tracing::error!("a worker thread did not exit");
+    }
+    stop.cancel();
+    for (name, handle) in [("http", transports.http.abort_handle()), ("grpc", transports.grpc.abort_handle())] {
+        let finished = async {
+            while !handle.is_finished() {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        };
+        if tokio::time::timeout(TRANSPORT_GRACE, finished).await.is_err() {
+            tracing::warn!(transport = name, "connections still open after the grace period: closing them");
+            handle.abort();
+        }
+    }
+    let _ = transports.janitor.await;
+    tracing::info!("stopped");
+    match failure {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
+}
+
+/// Removes expired jobs and fails queued jobs past their deadline, periodically.
+async fn janitor(service: JobService, every: Duration, stop: CancellationToken) {
+    let mut tick = tokio::time::interval(every);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => break,
+            _ = tick.tick() => {
+                let s = service.clone();
+                match tokio::task::spawn_blocking(move || s.sweep()).await {
+                    Ok(Ok(_)) => {}
+                    Ok(Err(e)) => tracing::error!(error = %e, "retention sweep failed"),
+                    Err(e) => tracing::error!(error = %e, "retention sweep panicked"),
+                }
+            }
+        }
+    }
+}
+
+/// Resolves on SIGTERM or SIGINT.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => tracing::info!("SIGINT received"),
+        _ = terminate => tracing::info!("SIGTERM received"),
+    }
+}
+
+/// `mcdenoise serve`: runs until SIGTERM/SIGINT, then shuts down gracefully.
+pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
+    crate::telemetry::init_logging(args.log_format, &args.log);
+    tracing::info!(config = %args.summary(), version = env!("CARGO_PKG_VERSION"), "starting mcdenoise serve");
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("mcdenoise-io")
+        .build()
+        .context("cannot start the async runtime")?;
+    runtime.block_on(async {
+        let server = Server::start(args).await?;
+        let token = server.shutdown_token();
+        tokio::spawn(async move {
+            shutdown_signal().await;
+            token.cancel();
+        });
+        server.wait().await
+    })
+}

@@ -1,0 +1,261 @@
+//! Logs (tracing, text or JSON) and Prometheus metrics.
+//!
+//! Every metric family is registered, and every bounded label value initialised, when the
+//! daemon starts: a scrape before the first job already shows queue depth 0 per priority,
+//! 0 jobs per outcome and empty stage histograms.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
+
+use prometheus_client::encoding::text::encode;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::registry::Registry;
+use tracing_subscriber::EnvFilter;
+
+use crate::jobs::model::Priority;
+
+/// Log line format.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    /// Human-readable lines.
+    #[default]
+    Text,
+    /// One JSON object per line, with the span fields (e.g. `job_id`).
+    Json,
+}
+
+/// Installs the global tracing subscriber, writing to stderr. `filter` uses the
+/// `RUST_LOG` syntax (e.g. `info,mcdenoise=debug`). Calling it twice is harmless.
+pub fn init_logging(format: LogFormat, filter: &str) {
+    let filter = EnvFilter::try_new(filter).unwrap_or_else(|_| EnvFilter::new("info"));
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
+    let _ = match format {
+        LogFormat::Text => builder.try_init(),
+        LogFormat::Json => builder.json().flatten_event(true).with_current_span(true).with_span_list(false).try_init(),
+    };
+}
+
+type Labels = Vec<(String, String)>;
+
+fn labels(pairs: &[(&str, &str)]) -> Labels {
+    pairs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect()
+}
+
+/// Stages timed per job (`mcdenoise_stage_duration_seconds{stage}`).
+pub const STAGES: [&str; 7] = ["queue", "decode", "preprocess", "inference", "reconstruction", "encode", "total"];
+/// Terminal outcomes (`mcdenoise_jobs_finished_total{outcome}`).
+pub const OUTCOMES: [&str; 3] = ["succeeded", "failed", "cancelled"];
+/// Why a submission was refused (`mcdenoise_jobs_rejected_total{reason}`).
+pub const REJECTIONS: [&str; 6] = ["queue_full", "invalid", "too_large", "unavailable", "unauthenticated", "other"];
+pub const TRANSPORTS: [&str; 2] = ["http", "grpc"];
+
+/// The daemon's Prometheus metrics.
+pub struct Telemetry {
+    registry: Mutex<Registry>,
+    queue_depth: Family<Labels, Gauge>,
+    jobs_submitted: Family<Labels, Counter>,
+    jobs_finished: Family<Labels, Counter>,
+    jobs_rejected: Family<Labels, Counter>,
+    jobs_interrupted: Counter,
+    jobs_in_flight: Gauge,
+    stage_seconds: Family<Labels, Histogram, fn() -> Histogram>,
+    bytes_received: Family<Labels, Counter>,
+    bytes_sent: Family<Labels, Counter>,
+    http_requests: Family<Labels, Counter>,
+    grpc_requests: Family<Labels, Counter>,
+    model_info: Family<Labels, Gauge>,
+    ready: Gauge,
+    workers_ready: Gauge,
+    workers: Gauge,
+    queue_capacity: Gauge,
+    tiles: Counter,
+    sanitized: Counter,
+    pixels: Counter,
+    last_scrape_len: AtomicU64,
+}
+
+fn stage_histogram() -> Histogram {
+    // 1 ms to ~33 min.
+    Histogram::new(exponential_buckets(0.001, 2.0, 22))
+}
+
+impl Default for Telemetry {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Telemetry {
+    pub fn new() -> Telemetry {
+        let mut registry = Registry::with_prefix("mcdenoise");
+        let t = Telemetry {
+            registry: Mutex::new(Registry::default()),
+            queue_depth: Family::default(),
+            jobs_submitted: Family::default(),
+            jobs_finished: Family::default(),
+            jobs_rejected: Family::default(),
+            jobs_interrupted: Counter::default(),
+            jobs_in_flight: Gauge::default(),
+            stage_seconds: Family::new_with_constructor(stage_histogram),
+            bytes_received: Family::default(),
+            bytes_sent: Family::default(),
+            http_requests: Family::default(),
+            grpc_requests: Family::default(),
+            model_info: Family::default(),
+            ready: Gauge::default(),
+            workers_ready: Gauge::default(),
+            workers: Gauge::default(),
+            queue_capacity: Gauge::default(),
+            tiles: Counter::default(),
+            sanitized: Counter::default(),
+            pixels: Counter::default(),
+            last_scrape_len: AtomicU64::new(0),
+        };
+        registry.register("queue_depth", "Jobs waiting in the queue, by priority class", t.queue_depth.clone());
+        registry.register("queue_capacity", "Largest number of queued jobs admitted", t.queue_capacity.clone());
+        registry.register("jobs_submitted", "Jobs accepted, by transport", t.jobs_submitted.clone());
+        registry.register("jobs_finished", "Jobs that reached a terminal state, by outcome", t.jobs_finished.clone());
+        registry.register("jobs_rejected", "Submissions refused, by reason", t.jobs_rejected.clone());
+        registry.register(
+            "jobs_interrupted",
+            "Running jobs put back in the queue (shutdown deadline or restart after a crash)",
+            t.jobs_interrupted.clone(),
+        );
+        registry.register("jobs_in_flight", "Jobs being denoised now", t.jobs_in_flight.clone());
+        registry.register(
+            "stage_duration_seconds",
+            "Time per job and stage (queue wait, decode, preprocess, inference, reconstruction, encode, total)",
+            t.stage_seconds.clone(),
+        );
+        registry.register("received_bytes", "Bytes of frames received, by transport", t.bytes_received.clone());
+        registry.register("sent_bytes", "Bytes of results sent, by transport", t.bytes_sent.clone());
+        registry.register("http_requests", "HTTP requests, by route and status", t.http_requests.clone());
+        registry.register("grpc_requests", "gRPC calls, by method and code", t.grpc_requests.clone());
+        registry.register(
+            "model_info",
+            "Loaded networks (value 1): variant, component, architecture, sha256",
+            t.model_info.clone(),
+        );
+        registry.register(
+            "ready",
+            "1 when models are loaded and warmed up and the daemon is not draining",
+            t.ready.clone(),
+        );
+        registry.register("workers", "Configured workers", t.workers.clone());
+        registry.register("workers_ready", "Workers with loaded, warmed-up models", t.workers_ready.clone());
+        registry.register("tiles", "Tiles denoised", t.tiles.clone());
+        registry.register("pixels", "Pixels of succeeded jobs", t.pixels.clone());
+        registry.register("sanitized_samples", "Non-finite input samples replaced by 0", t.sanitized.clone());
+
+        for p in Priority::ALL {
+            t.queue_depth.get_or_create(&labels(&[("priority", p.name())])).set(0);
+        }
+        for o in OUTCOMES {
+            let _ = t.jobs_finished.get_or_create(&labels(&[("outcome", o)]));
+        }
+        for r in REJECTIONS {
+            let _ = t.jobs_rejected.get_or_create(&labels(&[("reason", r)]));
+        }
+        for tr in TRANSPORTS {
+            let _ = t.jobs_submitted.get_or_create(&labels(&[("transport", tr)]));
+            let _ = t.bytes_received.get_or_create(&labels(&[("transport", tr)]));
+            let _ = t.bytes_sent.get_or_create(&labels(&[("transport", tr)]));
+        }
+        for s in STAGES {
+            let _ = t.stage_seconds.get_or_create(&labels(&[("stage", s)]));
+        }
+        *t.registry.lock().unwrap() = registry;
+        t
+    }
+
+    /// The Prometheus text exposition (OpenMetrics text format).
+    pub fn render(&self) -> String {
+        let mut out = String::with_capacity(self.last_scrape_len.load(Ordering::Relaxed) as usize + 1024);
+        encode(&mut out, &self.registry.lock().expect("metrics registry lock")).expect("writing to a String");
+        self.last_scrape_len.store(out.len() as u64, Ordering::Relaxed);
+        out
+    }
+
+    pub fn set_queue_depth(&self, priority: Priority, depth: usize) {
+        self.queue_depth.get_or_create(&labels(&[("priority", priority.name())])).set(depth as i64);
+    }
+
+    pub fn set_queue_capacity(&self, capacity: usize) {
+        self.queue_capacity.set(capacity as i64);
+    }
+
+    pub fn job_submitted(&self, transport: &str) {
+        self.jobs_submitted.get_or_create(&labels(&[("transport", transport)])).inc();
+    }
+
+    pub fn job_finished(&self, outcome: &str) {
+        self.jobs_finished.get_or_create(&labels(&[("outcome", outcome)])).inc();
+    }
+
+    pub fn job_rejected(&self, reason: &str) {
+        self.jobs_rejected.get_or_create(&labels(&[("reason", reason)])).inc();
+    }
+
+    pub fn job_interrupted(&self) {
+        self.jobs_interrupted.inc();
+    }
+
+    pub fn set_in_flight(&self, n: usize) {
+        self.jobs_in_flight.set(n as i64);
+    }
+
+    pub fn observe_stage(&self, stage: &str, ms: f64) {
+        self.stage_seconds.get_or_create(&labels(&[("stage", stage)])).observe(ms / 1e3);
+    }
+
+    pub fn bytes_received(&self, transport: &str, n: u64) {
+        self.bytes_received.get_or_create(&labels(&[("transport", transport)])).inc_by(n);
+    }
+
+    pub fn bytes_sent(&self, transport: &str, n: u64) {
+        self.bytes_sent.get_or_create(&labels(&[("transport", transport)])).inc_by(n);
+    }
+
+    /// `route` must be a matched route template (bounded cardinality), never a raw path.
+    pub fn http_request(&self, route: &str, status: u16) {
+        self.http_requests.get_or_create(&labels(&[("route", route), ("status", &status.to_string())])).inc();
+    }
+
+    pub fn grpc_request(&self, method: &str, code: &str) {
+        self.grpc_requests.get_or_create(&labels(&[("method", method), ("code", code)])).inc();
+    }
+
+    pub fn model_loaded(&self, variant: &str, component: &str, architecture: &str, sha256: &str) {
+        self.model_info
+            .get_or_create(&labels(&[
+                ("variant", variant),
+                ("component", component),
+                ("architecture", architecture),
+                ("sha256", sha256),
+            ]))
+            .set(1);
+    }
+
+    pub fn set_ready(&self, ready: bool) {
+        self.ready.set(i64::from(ready));
+    }
+
+    pub fn set_workers(&self, configured: usize, ready: usize) {
+        self.workers.set(configured as i64);
+        self.workers_ready.set(ready as i64);
+    }
+
+    pub fn tile_done(&self) {
+        self.tiles.inc();
+    }
+
+    pub fn job_output(&self, pixels: u64, sanitized: u64) {
+        self.pixels.inc_by(pixels);
+        self.sanitized.inc_by(sanitized);
+    }
+}

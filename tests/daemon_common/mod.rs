@@ -1,0 +1,214 @@
+//! Shared by the daemon tests: a daemon on ephemeral ports with the tiny test models, an
+//! HTTP client, synthetic frames.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use hyper::{Method, StatusCode};
+use serde_json::Value;
+
+use mcdenoise::client::{body_bytes, read_json, read_sse, HttpClient, SseEvent};
+use mcdenoise::config::parse_serve_args;
+use mcdenoise::server::Server;
+
+use crate::common::{exr_single, named_planes, tiny_models, Sample};
+
+/// A daemon under test.
+pub struct Daemon {
+    pub server: Server,
+    pub http: HttpClient,
+    pub base: String,
+    pub grpc: String,
+}
+
+/// The arguments of a test daemon: loopback ephemeral ports, tiny models, one worker with
+/// one thread, 32-pixel tiles; `extra` overrides.
+pub fn args(data_dir: &Path, extra: &[&str]) -> Vec<String> {
+    let mut a: Vec<String> = [
+        "serve",
+        "--http",
+        "127.0.0.1:0",
+        "--grpc",
+        "127.0.0.1:0",
+        "--workers",
+        "1",
+        "--threads-per-worker",
+        "1",
+        "--tile",
+        "32",
+        "--log",
+        "warn",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    a.push("--data-dir".into());
+    a.push(data_dir.display().to_string());
+    a.push("--models".into());
+    a.push(tiny_models().display().to_string());
+    a.extend(extra.iter().map(|s| s.to_string()));
+    a
+}
+
+pub async fn start(data_dir: &Path, extra: &[&str]) -> Daemon {
+    start_with_token(data_dir, extra, None).await
+}
+
+pub async fn start_with_token(data_dir: &Path, extra: &[&str], token: Option<&str>) -> Daemon {
+    let args = parse_serve_args(args(data_dir, extra)).expect("valid test arguments");
+    let server = Server::start(args).await.expect("the daemon starts");
+    let base = format!("http://{}", server.http_addr);
+    let grpc = server.grpc_addr.to_string();
+    Daemon { http: HttpClient::new(&base, token), base, grpc, server }
+}
+
+impl Daemon {
+    /// Waits until /readyz says ready.
+    pub async fn ready(&self) {
+        let t = Instant::now();
+        loop {
+            let resp = self.http.get("/readyz").await.expect("readyz");
+            if resp.status() == StatusCode::OK {
+                return;
+            }
+            assert!(t.elapsed() < Duration::from_secs(30), "the daemon did not become ready");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    pub async fn stop(self) {
+        self.server.shutdown();
+        self.server.wait().await.expect("clean shutdown");
+    }
+
+    pub async fn get_json(&self, path: &str) -> (StatusCode, Value) {
+        self.http.json(Method::GET, path, &[], body_bytes(Bytes::new())).await.expect("request")
+    }
+
+    pub async fn post_json(&self, path: &str) -> (StatusCode, Value) {
+        self.http.json(Method::POST, path, &[], body_bytes(Bytes::new())).await.expect("request")
+    }
+
+    /// Submits a raw EXR body; `query` without the `?`.
+    pub async fn submit(&self, exr: &[u8], query: &str, headers: &[(&str, &str)]) -> (StatusCode, Value) {
+        let mut h: Vec<(&str, &str)> = headers.to_vec();
+        if !headers.iter().any(|(k, _)| k.eq_ignore_ascii_case("content-type")) {
+            h.push(("content-type", "image/x-exr"));
+        }
+        self.http.json(Method::POST, &format!("/v1/jobs?{query}"), &h, body_bytes(exr.to_vec())).await.expect("submit")
+    }
+
+    /// Submits and expects 202; returns the job id.
+    pub async fn submit_ok(&self, exr: &[u8], query: &str) -> String {
+        let (status, job) = self.submit(exr, query, &[]).await;
+        assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+        job["id"].as_str().unwrap().to_string()
+    }
+
+    pub async fn job(&self, id: &str) -> Value {
+        let (status, job) = self.get_json(&format!("/v1/jobs/{id}")).await;
+        assert_eq!(status, StatusCode::OK, "{job}");
+        job
+    }
+
+    /// Polls the job until `pred` holds.
+    pub async fn wait_job(&self, id: &str, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+        let t = Instant::now();
+        loop {
+            let job = self.job(id).await;
+            if pred(&job) {
+                return job;
+            }
+            assert!(t.elapsed() < Duration::from_secs(60), "job {id} never became {what}: {job}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    pub async fn wait_state(&self, id: &str, state: &str) -> Value {
+        self.wait_job(id, state, |j| j["state"] == state).await
+    }
+
+    /// Waits until the job runs and has done at least one tile.
+    pub async fn wait_running(&self, id: &str) -> Value {
+        self.wait_job(id, "running", |j| j["state"] == "running" && j["progress"]["tiles_done"].as_u64() >= Some(1))
+            .await
+    }
+
+    /// Every SSE event of a job until the stream ends.
+    pub async fn events(&self, id: &str) -> Vec<SseEvent> {
+        let resp = self.http.get(&format!("/v1/jobs/{id}/events")).await.expect("events");
+        assert_eq!(resp.status(), StatusCode::OK);
+        let mut out = Vec::new();
+        read_sse(resp, |e| {
+            out.push(e);
+            true
+        })
+        .await
+        .expect("event stream");
+        out
+    }
+
+    pub async fn result(&self, id: &str) -> (StatusCode, Vec<u8>) {
+        use http_body_util::BodyExt;
+        let resp = self.http.get(&format!("/v1/jobs/{id}/result")).await.expect("result");
+        let status = resp.status();
+        if status != StatusCode::OK {
+            let (s, v) = read_json(resp).await.unwrap();
+            return (s, v.to_string().into_bytes());
+        }
+        (status, resp.into_body().collect().await.unwrap().to_bytes().to_vec())
+    }
+}
+
+/// A complete frame (no covariance) of `w`×`h` as EXR bytes.
+pub fn frame(w: usize, h: usize) -> Vec<u8> {
+    exr_single(w, h, &named_planes(w, h, false), Sample::F32)
+}
+
+/// A frame with one buffer's channels left out.
+pub fn frame_without(w: usize, h: usize, prefix: &str) -> Vec<u8> {
+    let planes: Vec<_> = named_planes(w, h, false).into_iter().filter(|(n, _)| !n.starts_with(prefix)).collect();
+    exr_single(w, h, &planes, Sample::F32)
+}
+
+/// A reference (`R,G,B`) for [`frame`]: diffuse + specular, slightly changed.
+pub fn reference(w: usize, h: usize) -> Vec<u8> {
+    let planes = named_planes(w, h, false);
+    let get = |n: &str| planes.iter().find(|(k, _)| k == n).unwrap().1.clone();
+    let rgb: Vec<(String, Vec<f32>)> = ["R", "G", "B"]
+        .iter()
+        .map(|c| {
+            let d = get(&format!("diffuse.{c}"));
+            let s = get(&format!("specular.{c}"));
+            (c.to_string(), d.iter().zip(&s).map(|(a, b)| 0.95 * (a + b)).collect())
+        })
+        .collect();
+    exr_single(w, h, &rgb, Sample::F32)
+}
+
+pub fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, bytes).unwrap();
+    p
+}
+
+pub fn multipart(options: &str, parts: &[(&str, &[u8])]) -> (String, Vec<u8>) {
+    let boundary = "test-boundary-7MA4YWxkTrZu0gW";
+    let mut body = Vec::new();
+    body.extend_from_slice(
+        format!("--{boundary}\r\nContent-Disposition: form-data; name=\"options\"\r\nContent-Type: application/json\r\n\r\n{options}\r\n")
+            .as_bytes(),
+    );
+    for (name, data) in parts {
+        body.extend_from_slice(
+            format!("--{boundary}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{name}.exr\"\r\nContent-Type: image/x-exr\r\n\r\n")
+                .as_bytes(),
+        );
+        body.extend_from_slice(data);
+        body.extend_from_slice(b"\r\n");
+    }
+    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
+    (format!("multipart/form-data; boundary={boundary}"), body)
+}

@@ -1,0 +1,376 @@
+//! The daemon's HTTP API against a real daemon on ephemeral ports, with the real engine
+//! and the tiny test models: round trips, idempotency, cancellation, admission limits,
+//! input errors, authentication, metrics.
+
+mod common;
+mod daemon_common;
+
+use std::time::Duration;
+
+use hyper::{Method, StatusCode};
+use mcdenoise::client::{body_bytes, read_json};
+use mcdenoise::frame::Frame;
+
+use common::{engine, frame_of, max_rel_diff};
+use daemon_common::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn http_round_trip_streams_progress_then_result_and_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let (w, h) = (64, 48);
+    let input = frame(w, h);
+    let (content_type, body) = multipart(
+        r#"{"priority": "high", "layers": ["diffuse"], "label": "shot-010"}"#,
+        &[("frame", &input), ("reference", &reference(w, h))],
+    );
+    let resp = d
+        .http
+        .send(Method::POST, "/v1/jobs", &[("content-type", content_type.as_str())], body_bytes(body))
+        .await
+        .unwrap();
+    let location = resp.headers().get("location").map(|v| v.to_str().unwrap().to_string());
+    let (status, job) = read_json(resp).await.unwrap();
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    assert_eq!(location.as_deref(), Some(format!("/v1/jobs/{id}").as_str()));
+    assert_eq!(job["urls"]["events"], format!("/v1/jobs/{id}/events"));
+    assert_eq!(job["priority"], "high");
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(64), Some(48)));
+
+    // Progress as Server-Sent Events, ending with the metrics.
+    let events = d.events(&id).await;
+    let names: Vec<&str> = events.iter().map(|e| e.event.as_str()).collect();
+    assert_eq!(names.last(), Some(&"succeeded"), "{names:?}");
+    let tiles: Vec<u64> = events
+        .iter()
+        .filter(|e| e.event == "progress")
+        .map(|e| {
+            assert_eq!(e.data["tiles_total"], 4, "64x48 in 32-pixel tiles");
+            e.data["tiles_done"].as_u64().unwrap()
+        })
+        .collect();
+    assert!(tiles.windows(2).all(|p| p[0] <= p[1]), "{tiles:?}");
+    let done = &events.last().unwrap().data;
+    assert_eq!(done["state"], "succeeded");
+    assert_eq!(done["progress"]["tiles_done"], 4);
+    for m in ["input", "output"] {
+        for k in ["relmse", "dssim", "psnr", "smape"] {
+            assert!(done["metrics"][m][k].is_number(), "{m}.{k}: {done}");
+        }
+    }
+    for stage in ["queue", "decode", "preprocess", "inference", "reconstruction", "encode", "total"] {
+        assert!(done["timings_ms"][stage].as_f64().unwrap() >= 0.0, "{stage}");
+    }
+    assert_eq!(done["sanitized"]["total"], 0);
+    assert_eq!(done["variant"], "nocov");
+
+    // The result is the engine's output for this frame, with the requested layer.
+    let (status, exr) = d.result(&id).await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(done["result_bytes"].as_u64(), Some(exr.len() as u64));
+    let out = Frame::reference_from_exr_bytes(&exr, &Default::default()).unwrap();
+    assert_eq!((out.width, out.height), (w, h));
+    let expected = engine(32).denoise(&frame_of(&input), None, &mut |_| true).unwrap();
+    let got = out.color();
+    for c in 0..3 {
+        assert!(max_rel_diff(&got[c], &expected.color[c]) < 1e-4, "channel {c}");
+    }
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(&exr), false).unwrap();
+    let names: Vec<String> = meta.headers[0].channels.list.iter().map(|c| c.name.to_string()).collect();
+    assert!(names.contains(&"diffuse.R".to_string()), "{names:?}");
+
+    // Listing and filtering, then deletion.
+    let (_, list) = d.get_json("/v1/jobs?label=shot-010&state=succeeded").await;
+    assert_eq!(list["jobs"].as_array().unwrap().len(), 1);
+    let (_, list) = d.get_json("/v1/jobs?state=queued").await;
+    assert_eq!(list["jobs"].as_array().unwrap().len(), 0);
+    let (status, _) = d.get_json("/v1/jobs?state=bogus").await;
+    assert_eq!(status, StatusCode::BAD_REQUEST);
+    let (status, _) = d.http.json(Method::DELETE, &format!("/v1/jobs/{id}"), &[], body_bytes(vec![])).await.unwrap();
+    assert_eq!(status, StatusCode::NO_CONTENT);
+    let (status, err) = d.get_json(&format!("/v1/jobs/{id}")).await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    assert_eq!(err["error"]["code"], "not_found");
+    assert!(!dir.path().join("jobs").join(&id).exists(), "files removed with the job");
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_retried_submission_with_the_same_key_returns_the_same_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let input = frame(32, 32);
+    let (s1, j1) = d.submit(&input, "", &[("idempotency-key", "render-42-frame-7")]).await;
+    let (s2, j2) = d.submit(&input, "", &[("idempotency-key", "render-42-frame-7")]).await;
+    assert_eq!((s1, s2), (StatusCode::ACCEPTED, StatusCode::ACCEPTED));
+    assert_eq!(j1["id"], j2["id"]);
+    // The key also works as a query parameter and across transports.
+    let (_, j3) = d.submit(&input, "idempotency_key=render-42-frame-7", &[]).await;
+    assert_eq!(j1["id"], j3["id"]);
+    let mut grpc = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let path = write(dir.path(), "f.exr", &input);
+    let options = mcdenoise::grpc::pb::JobOptions { idempotency_key: "render-42-frame-7".into(), ..Default::default() };
+    let upload = mcdenoise::client::upload_stream(options, &path, None, 4096).await.unwrap();
+    let j4 = grpc.submit_job(upload).await.unwrap().into_inner();
+    assert_eq!(j1["id"].as_str(), Some(j4.id.as_str()));
+    // A different key is a different job.
+    let (_, j5) = d.submit(&input, "", &[("idempotency-key", "render-42-frame-8")]).await;
+    assert_ne!(j1["id"], j5["id"]);
+    let (_, list) = d.get_json("/v1/jobs").await;
+    assert_eq!(list["jobs"].as_array().unwrap().len(), 2, "{list}");
+    d.wait_state(j1["id"].as_str().unwrap(), "succeeded").await;
+    // After completion, the key still answers with the finished job.
+    let (_, j6) = d.submit(&input, "", &[("idempotency-key", "render-42-frame-7")]).await;
+    assert_eq!(j6["id"], j1["id"]);
+    assert_eq!(j6["state"], "succeeded");
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancels_a_queued_job_at_once_and_a_running_one_between_tiles() {
+    let dir = tempfile::tempdir().unwrap();
+    // 64x64 in 16-pixel tiles = 16 tiles of at least 100 ms.
+    let d = start(dir.path(), &["--tile", "16", "--debug-tile-delay", "100ms"]).await;
+    d.ready().await;
+    let running = d.submit_ok(&frame(64, 64), "").await;
+    d.wait_running(&running).await;
+    let queued = d.submit_ok(&frame(64, 64), "priority=low").await;
+    let job = d.job(&queued).await;
+    assert_eq!((job["state"].as_str(), job["queue_position"].as_u64()), (Some("queued"), Some(1)));
+
+    let (status, job) = d.post_json(&format!("/v1/jobs/{queued}/cancel")).await;
+    assert_eq!(status, StatusCode::OK, "{job}");
+    assert_eq!(job["state"], "cancelled");
+
+    let (status, job) = d.post_json(&format!("/v1/jobs/{running}/cancel")).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    assert_eq!(job["cancel_requested"], true);
+    let events = d.events(&running).await;
+    assert_eq!(events.last().unwrap().event, "cancelled");
+    let job = d.job(&running).await;
+    assert_eq!(job["state"], "cancelled");
+    let done = job["progress"]["tiles_done"].as_u64().unwrap();
+    assert!(done < 16, "stopped between tiles, not at the end: {done}");
+
+    // Finished jobs cannot be cancelled again, and have no result.
+    let (status, err) = d.post_json(&format!("/v1/jobs/{running}/cancel")).await;
+    assert_eq!(status, StatusCode::CONFLICT, "{err}");
+    let (status, _) = d.result(&running).await;
+    assert_eq!(status, StatusCode::CONFLICT);
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_queue_answers_429_with_retry_after_and_grpc_resource_exhausted() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--queue-capacity", "1", "--tile", "16", "--debug-tile-delay", "100ms"]).await;
+    d.ready().await;
+    let a = d.submit_ok(&frame(64, 64), "").await;
+    d.wait_running(&a).await;
+    let b = d.submit_ok(&frame(32, 32), "").await;
+
+    let resp = d
+        .http
+        .send(Method::POST, "/v1/jobs", &[("content-type", "image/x-exr")], body_bytes(frame(32, 32)))
+        .await
+        .unwrap();
+    let retry_after = resp.headers().get("retry-after").map(|v| v.to_str().unwrap().parse::<u64>().unwrap());
+    let (status, err) = read_json(resp).await.unwrap();
+    assert_eq!(status, StatusCode::TOO_MANY_REQUESTS, "{err}");
+    assert_eq!(err["error"]["code"], "queue_full");
+    assert!(retry_after.is_some_and(|s| s >= 1), "{retry_after:?}");
+
+    let mut grpc = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let path = write(dir.path(), "f.exr", &frame(32, 32));
+    let upload = mcdenoise::client::upload_stream(Default::default(), &path, None, 4096).await.unwrap();
+    let status = grpc.submit_job(upload).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::ResourceExhausted, "{status:?}");
+    assert!(status.metadata().get("retry-after").is_some());
+
+    let (_, metrics) = d.get_json("/metrics").await;
+    let metrics = metrics.as_str().unwrap().to_string();
+    assert!(metrics.contains("mcdenoise_jobs_rejected_total{reason=\"queue_full\"} 2"), "{metrics}");
+    assert!(metrics.contains("mcdenoise_queue_depth{priority=\"normal\"} 1"), "{metrics}");
+
+    // Capacity frees up once the queued job leaves the queue.
+    d.post_json(&format!("/v1/jobs/{b}/cancel")).await;
+    let c = d.submit_ok(&frame(32, 32), "").await;
+    d.post_json(&format!("/v1/jobs/{a}/cancel")).await;
+    d.wait_state(&c, "succeeded").await;
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn each_bad_input_gets_its_own_error_while_other_jobs_complete() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--max-pixels", "5000", "--max-body-bytes", "2000000"]).await;
+    d.ready().await;
+    let good = d.submit_ok(&frame(64, 64), "").await;
+
+    // Not an EXR at all.
+    let (status, err) = d.submit(b"this is not an EXR file", "", &[]).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+    assert_eq!(err["error"]["code"], "invalid_frame");
+    assert!(err["error"]["message"].as_str().unwrap().starts_with("frame: "), "{err}");
+
+    // A required channel missing: named in the answer.
+    let (status, err) = d.submit(&frame_without(32, 32, "depth"), "", &[]).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+    let message = err["error"]["message"].as_str().unwrap();
+    assert!(message.contains("missing channels: depth.Z"), "{message}");
+
+    // Over the pixel limit (from the header).
+    let (status, err) = d.submit(&frame(100, 60), "", &[]).await;
+    assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("over the limit of 5000"), "{err}");
+
+    // Over the body limit.
+    let (status, err) = d.submit(&vec![0u8; 2_500_000], "", &[]).await;
+    assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE, "{err}");
+    assert_eq!(err["error"]["code"], "too_large");
+
+    // Bad options.
+    let (status, err) = d.submit(&frame(32, 32), "priority=urgent", &[]).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("urgent"));
+    let (status, err) = d.submit(&frame(32, 32), "layers=albedo", &[]).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{err}");
+    let (ct, body) = multipart(r#"{"priority": "high", "colour": 1}"#, &[("frame", &frame(32, 32))]);
+    let (status, err) =
+        d.http.json(Method::POST, "/v1/jobs", &[("content-type", &ct)], body_bytes(body)).await.unwrap();
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("colour"), "{err}");
+    let (status, _) = d.submit(&frame(32, 32), "", &[("content-type", "text/plain")]).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST);
+
+    // A reference of another size.
+    let (ct, body) = multipart("{}", &[("frame", &frame(32, 32)), ("reference", &reference(32, 16))]);
+    let (status, err) =
+        d.http.json(Method::POST, "/v1/jobs", &[("content-type", &ct)], body_bytes(body)).await.unwrap();
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("reference is 32x16"), "{err}");
+
+    // A valid header with truncated pixel data: accepted, then the job fails with the reason.
+    let whole = frame(64, 64);
+    let truncated = d.submit_ok(&whole[..whole.len() * 2 / 3], "").await;
+    let job = d.wait_state(&truncated, "failed").await;
+    assert_eq!(job["error"]["code"], "invalid_frame", "{job}");
+    assert!(job["error"]["message"].as_str().unwrap().starts_with("frame: "), "{job}");
+
+    // gRPC names the missing channel too.
+    let mut grpc = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let path = write(dir.path(), "nodepth.exr", &frame_without(32, 32, "depth"));
+    let upload = mcdenoise::client::upload_stream(Default::default(), &path, None, 4096).await.unwrap();
+    let status = grpc.submit_job(upload).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument);
+    assert!(status.message().contains("depth.Z"), "{}", status.message());
+
+    // Unknown jobs and unfinished results.
+    let (status, _) = d.get_json("/v1/jobs/no-such-job").await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    let (status, _) = d.get_json("/v1/nothing-here").await;
+    assert_eq!(status, StatusCode::NOT_FOUND);
+
+    // Meanwhile the good job and a later one complete.
+    d.wait_state(&good, "succeeded").await;
+    let later = d.submit_ok(&frame(32, 32), "").await;
+    d.wait_state(&later, "succeeded").await;
+    let (_, list) = d.get_json("/v1/jobs").await;
+    assert_eq!(list["jobs"].as_array().unwrap().len(), 3, "refused uploads leave no job: {list}");
+    let leftovers = std::fs::read_dir(dir.path().join("jobs")).unwrap().count();
+    assert_eq!(leftovers, 3, "refused uploads leave no files");
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bearer_tokens_guard_everything_but_health() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start_with_token(dir.path(), &["--auth-token", "s3cret,other"], None).await;
+    d.ready().await;
+    for open in ["/livez", "/readyz"] {
+        assert_eq!(d.http.get(open).await.unwrap().status(), StatusCode::OK, "{open}");
+    }
+    for guarded in ["/v1/jobs", "/metrics", "/v1/models", "/v1/openapi.json"] {
+        let resp = d.http.get(guarded).await.unwrap();
+        assert_eq!(resp.status(), StatusCode::UNAUTHORIZED, "{guarded}");
+        assert!(resp.headers().get("www-authenticate").is_some());
+    }
+    let (status, _) = d.submit(&frame(32, 32), "", &[]).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+    let (status, _) = d.submit(&frame(32, 32), "", &[("authorization", "Bearer wrong")]).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+    let (status, job) = d.submit(&frame(32, 32), "", &[("authorization", "Bearer other")]).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let authed = mcdenoise::client::HttpClient::new(&d.base, Some("s3cret"));
+    let (status, _) = authed.json(Method::GET, "/v1/jobs", &[], body_bytes(vec![])).await.unwrap();
+    assert_eq!(status, StatusCode::OK);
+
+    // gRPC: the API needs the token, health does not.
+    let mut anonymous = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let err = anonymous.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await.unwrap_err();
+    assert_eq!(err.code(), tonic::Code::Unauthenticated);
+    let mut client = mcdenoise::client::grpc_connect(&d.grpc, Some("s3cret")).await.unwrap();
+    let jobs = client.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await.unwrap().into_inner();
+    assert_eq!(jobs.jobs.len(), 1);
+    let channel =
+        tonic::transport::Endpoint::from_shared(format!("http://{}", d.grpc)).unwrap().connect().await.unwrap();
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+    let reply = health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await.unwrap();
+    assert_eq!(reply.into_inner().status, tonic_health::pb::health_check_response::ServingStatus::Serving as i32);
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_models_and_openapi_are_served_from_the_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let resp = d.http.get("/metrics").await.unwrap();
+    assert!(resp.headers()["content-type"].to_str().unwrap().starts_with("application/openmetrics-text"));
+    let (_, text) = read_json(resp).await.unwrap();
+    let text = text.as_str().unwrap().to_string();
+    for line in [
+        "mcdenoise_queue_depth{priority=\"high\"} 0",
+        "mcdenoise_queue_depth{priority=\"low\"} 0",
+        "mcdenoise_jobs_finished_total{outcome=\"succeeded\"} 0",
+        "mcdenoise_jobs_finished_total{outcome=\"failed\"} 0",
+        "mcdenoise_jobs_in_flight 0",
+        "mcdenoise_stage_duration_seconds_count{stage=\"inference\"} 0",
+        "mcdenoise_received_bytes_total{transport=\"grpc\"} 0",
+        "mcdenoise_ready 1",
+        "mcdenoise_model_info{variant=\"nocov\",component=\"diffuse\"",
+    ] {
+        assert!(text.contains(line), "missing `{line}` in:\n{text}");
+    }
+
+    let (status, models) = d.get_json("/v1/models").await;
+    assert_eq!(status, StatusCode::OK);
+    let list = models["models"].as_array().unwrap();
+    assert_eq!(list.len(), 4, "{models}");
+    for m in list {
+        assert_eq!(m["sha256"].as_str().unwrap().len(), 64);
+        assert!(m["flops_per_pixel"].as_f64().unwrap() > 0.0);
+        assert_eq!(m["contract"], "1");
+    }
+
+    let (status, api) = d.get_json("/v1/openapi.json").await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(api["openapi"], "3.1.0");
+    for path in ["/v1/jobs", "/v1/jobs/{id}", "/v1/jobs/{id}/events", "/v1/jobs/{id}/result", "/readyz", "/metrics"] {
+        assert!(api["paths"][path].is_object(), "{path}");
+    }
+
+    // After a job: counters and histograms move.
+    let id = d.submit_ok(&frame(32, 32), "").await;
+    d.wait_state(&id, "succeeded").await;
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let (_, text) = d.get_json("/metrics").await;
+    let text = text.as_str().unwrap().to_string();
+    assert!(text.contains("mcdenoise_jobs_finished_total{outcome=\"succeeded\"} 1"), "{text}");
+    assert!(text.contains("mcdenoise_stage_duration_seconds_count{stage=\"inference\"} 1"), "{text}");
+    assert!(text.contains("mcdenoise_jobs_submitted_total{transport=\"http\"} 1"), "{text}");
+    d.stop().await;
+}

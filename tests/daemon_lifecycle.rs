@@ -1,0 +1,270 @@
+//! The daemon's life: readiness while loading and draining, restarts (graceful and after
+//! SIGKILL) without losing or repeating work, deadlines, retention, and the
+//! `mcdenoise submit` client against a live daemon.
+
+mod common;
+mod daemon_common;
+
+use std::io::BufRead;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use hyper::StatusCode;
+use serde_json::Value;
+
+use daemon_common::*;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn readiness_is_false_until_models_load_and_while_draining() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--debug-startup-delay", "800ms", "--tile", "16", "--debug-tile-delay", "60ms"]).await;
+    // Loading: alive, not ready, submissions refused, gRPC health NOT_SERVING.
+    assert_eq!(d.http.get("/livez").await.unwrap().status(), StatusCode::OK);
+    let (status, body) = d.get_json("/readyz").await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+    assert_eq!(body["phase"], "loading");
+    let (status, err) = d.submit(&frame(32, 32), "", &[]).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{err}");
+    let channel =
+        tonic::transport::Endpoint::from_shared(format!("http://{}", d.grpc)).unwrap().connect().await.unwrap();
+    let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
+    let check = || tonic_health::pb::HealthCheckRequest { service: String::new() };
+    let not_serving = tonic_health::pb::health_check_response::ServingStatus::NotServing as i32;
+    assert_eq!(health.check(check()).await.unwrap().into_inner().status, not_serving);
+    let (status, _) = d.get_json("/v1/models").await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+
+    d.ready().await;
+    let (_, body) = d.get_json("/readyz").await;
+    assert_eq!(body["phase"], "ready");
+
+    // Draining: a running job finishes, nothing new is admitted, readiness is false.
+    let running = d.submit_ok(&frame(64, 64), "").await;
+    d.wait_running(&running).await;
+    let queued = d.submit_ok(&frame(32, 32), "").await;
+    d.server.shutdown();
+    let t = Instant::now();
+    loop {
+        let (status, body) = d.get_json("/readyz").await;
+        if status == StatusCode::SERVICE_UNAVAILABLE {
+            assert_eq!(body["phase"], "draining");
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(5));
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(health.check(check()).await.unwrap().into_inner().status, not_serving);
+    let (status, err) = d.submit(&frame(32, 32), "", &[]).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("shutting down"));
+    // The running job completes during the drain; its events and result stay reachable.
+    let events = d.events(&running).await;
+    assert_eq!(events.last().unwrap().event, "succeeded");
+    assert_eq!(d.result(&running).await.0, StatusCode::OK);
+    assert_eq!(d.job(&queued).await["state"], "queued", "queued work waits for the next start");
+    d.server.wait().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_restart_keeps_finished_results_and_runs_queued_and_interrupted_jobs() {
+    let dir = tempfile::tempdir().unwrap();
+    let slow = ["--tile", "16", "--debug-tile-delay", "80ms", "--shutdown-timeout", "0s"];
+    let d = start(dir.path(), &slow).await;
+    d.ready().await;
+    let finished = d.submit_ok(&frame(32, 16), "").await;
+    d.wait_state(&finished, "succeeded").await;
+    let (_, result_before) = d.result(&finished).await;
+    let interrupted = d.submit_ok(&frame(64, 64), "").await;
+    d.wait_running(&interrupted).await;
+    let queued = d.submit_ok(&frame(32, 32), "idempotency_key=shot-3").await;
+    // Shutdown timeout 0: the running job is stopped at its next tile and requeued.
+    d.stop().await;
+
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let job = d.job(&finished).await;
+    assert_eq!((job["state"].as_str(), job["attempts"].as_u64()), (Some("succeeded"), Some(1)), "{job}");
+    assert_eq!(d.result(&finished).await.1, result_before, "the finished result is served unchanged");
+    let job = d.wait_state(&interrupted, "succeeded").await;
+    assert_eq!(job["attempts"], 2, "interrupted once, then completed: {job}");
+    let job = d.wait_state(&queued, "succeeded").await;
+    assert_eq!(job["attempts"], 1, "{job}");
+    // The idempotency key survives the restart.
+    let (_, again) = d.submit(&frame(32, 32), "idempotency_key=shot-3", &[]).await;
+    assert_eq!(again["id"].as_str(), Some(queued.as_str()));
+    let (_, list) = d.get_json("/v1/jobs").await;
+    assert_eq!(list["jobs"].as_array().unwrap().len(), 3, "{list}");
+    let (_, metrics) = d.get_json("/metrics").await;
+    assert!(metrics.as_str().unwrap().contains("mcdenoise_jobs_finished_total{outcome=\"succeeded\"} 2"));
+    d.stop().await;
+}
+
+/// The binary, started as `mcdenoise serve` with JSON logs; its addresses read from the
+/// "listening" log line.
+struct Process {
+    child: Child,
+    http: String,
+    grpc: String,
+}
+
+fn spawn_daemon(data_dir: &std::path::Path, extra: &[&str]) -> Process {
+    let mut argv = args(data_dir, extra);
+    argv.extend(["--log-format".into(), "json".into(), "--log".into(), "info".into()]);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_mcdenoise"))
+        .args(&argv)
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("the binary starts");
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Ok(v) = serde_json::from_str::<Value>(&line) {
+                if v["message"] == "listening" {
+                    let _ = tx.send((v["http"].as_str().unwrap().to_string(), v["grpc"].as_str().unwrap().to_string()));
+                }
+            }
+        }
+    });
+    let (http, grpc) = rx.recv_timeout(Duration::from_secs(30)).expect("the daemon logs its addresses");
+    Process { child, http: format!("http://{http}"), grpc }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_daemon_loses_nothing_and_completes_nothing_twice() {
+    use hyper::Method;
+    use mcdenoise::client::{body_bytes, HttpClient};
+    let dir = tempfile::tempdir().unwrap();
+    let mut p = spawn_daemon(dir.path(), &["--tile", "16", "--debug-tile-delay", "80ms"]);
+    let http = HttpClient::new(&p.http, None);
+    let get = |http: HttpClient, path: String| async move {
+        http.json(Method::GET, &path, &[], body_bytes(vec![])).await.unwrap()
+    };
+    let submit = |http: HttpClient, exr: Vec<u8>| async move {
+        let (s, j) =
+            http.json(Method::POST, "/v1/jobs", &[("content-type", "image/x-exr")], body_bytes(exr)).await.unwrap();
+        assert_eq!(s, StatusCode::ACCEPTED, "{j}");
+        j["id"].as_str().unwrap().to_string()
+    };
+    let wait = |http: HttpClient, id: String, pred: fn(&Value) -> bool| async move {
+        let t = Instant::now();
+        loop {
+            let (s, j) = http.json(Method::GET, &format!("/v1/jobs/{id}"), &[], body_bytes(vec![])).await.unwrap();
+            if s == StatusCode::OK && pred(&j) {
+                return j;
+            }
+            assert!(t.elapsed() < Duration::from_secs(60), "{j}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    };
+    let t = Instant::now();
+    while get(http.clone(), "/readyz".into()).await.0 != StatusCode::OK {
+        assert!(t.elapsed() < Duration::from_secs(30));
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let done = submit(http.clone(), frame(32, 16)).await;
+    wait(http.clone(), done.clone(), |j| j["state"] == "succeeded").await;
+    let (_, before) = get(http.clone(), format!("/v1/jobs/{done}")).await;
+    let running = submit(http.clone(), frame(64, 64)).await;
+    wait(http.clone(), running.clone(), |j| j["state"] == "running" && j["progress"]["tiles_done"].as_u64() >= Some(2))
+        .await;
+    let queued = submit(http.clone(), frame(32, 32)).await;
+
+    p.child.kill().expect("SIGKILL");
+    p.child.wait().unwrap();
+
+    let mut p = spawn_daemon(dir.path(), &[]);
+    let http = HttpClient::new(&p.http, None);
+    let (_, after) = get(http.clone(), format!("/v1/jobs/{done}")).await;
+    assert_eq!(after["state"], "succeeded");
+    assert_eq!(after["attempts"], 1, "not run again");
+    assert_eq!(after["result_bytes"], before["result_bytes"]);
+    let j = wait(http.clone(), running.clone(), |j| j["state"] == "succeeded").await;
+    assert_eq!(j["attempts"], 2, "the interrupted run started again: {j}");
+    let j = wait(http.clone(), queued.clone(), |j| j["state"] == "succeeded").await;
+    assert_eq!(j["attempts"], 1);
+    let resp = http.get(&format!("/v1/jobs/{done}/result")).await.unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    let mut grpc = mcdenoise::client::grpc_connect(&p.grpc, None).await.unwrap();
+    let job = grpc.get_job(mcdenoise::grpc::pb::GetJobRequest { id: done.clone() }).await.unwrap().into_inner();
+    assert_eq!(job.state, mcdenoise::grpc::pb::JobState::Succeeded as i32);
+
+    // SIGTERM: a graceful exit with status 0.
+    let pid = p.child.id().to_string();
+    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    let status = p.child.wait().unwrap();
+    assert!(status.success(), "{status:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deadlines_fail_slow_jobs_and_expired_jobs_are_removed() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(
+        dir.path(),
+        &["--tile", "16", "--debug-tile-delay", "100ms", "--result-ttl", "1500ms", "--janitor-interval", "100ms"],
+    )
+    .await;
+    d.ready().await;
+    let slow = d.submit_ok(&frame(64, 64), "deadline_seconds=1").await;
+    let queued_behind = d.submit_ok(&frame(64, 64), "deadline_seconds=1").await;
+    let job = d.wait_state(&slow, "failed").await;
+    assert_eq!(job["error"]["code"], "deadline_exceeded", "{job}");
+    let job = d.wait_state(&queued_behind, "failed").await;
+    assert_eq!(job["error"]["code"], "deadline_exceeded", "{job}");
+    assert_eq!(job["attempts"], 0, "failed while queued, never started: {job}");
+
+    let quick = d.submit_ok(&frame(16, 16), "").await;
+    d.wait_state(&quick, "succeeded").await;
+    assert!(dir.path().join("jobs").join(&quick).join("result.exr").is_file());
+    // Removed after the retention time.
+    let t = Instant::now();
+    loop {
+        let (status, _) = d.get_json(&format!("/v1/jobs/{quick}")).await;
+        if status == StatusCode::NOT_FOUND {
+            break;
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "the job was never removed");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(!dir.path().join("jobs").join(&quick).exists());
+    d.stop().await;
+}
+
+async fn run(mut cmd: Command) -> std::process::Output {
+    tokio::task::spawn_blocking(move || cmd.output().unwrap()).await.unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_submit_command_waits_and_writes_the_result_over_http_and_grpc() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--auth-token", "tok"]).await;
+    d.ready().await;
+    let frame_path = write(dir.path(), "frame.exr", &frame(40, 24));
+    let reference_path = write(dir.path(), "ref.exr", &reference(40, 24));
+    for server in [d.base.clone(), format!("grpc://{}", d.grpc)] {
+        let out = dir.path().join(format!("out-{}.exr", server.len()));
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mcdenoise"));
+        cmd.args(["submit", frame_path.to_str().unwrap(), "--server", &server, "--wait", "-o"])
+            .arg(&out)
+            .args(["--reference", reference_path.to_str().unwrap(), "--layers", "diffuse", "--label", "cli"])
+            .env("MCDENOISE_TOKEN", "tok");
+        let output = run(cmd).await;
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(output.status.success(), "{server}: {stderr}");
+        let job: Value = serde_json::from_slice(&output.stdout).unwrap();
+        assert_eq!(job["state"], "succeeded", "{server}: {job}");
+        assert!(job["metrics"]["output"]["relmse"].is_number(), "{server}: {job}");
+        assert!(stderr.contains("submitted job") && stderr.contains("succeeded"), "{stderr}");
+        let result =
+            mcdenoise::frame::Frame::reference_from_exr_bytes(&std::fs::read(&out).unwrap(), &Default::default());
+        assert_eq!(result.unwrap().width, 40);
+    }
+    // Without the token: refused, with a non-zero exit status and the reason.
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_mcdenoise"));
+    cmd.args(["submit", frame_path.to_str().unwrap(), "--server", &d.base]).env_remove("MCDENOISE_TOKEN");
+    let output = run(cmd).await;
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("401"), "{}", String::from_utf8_lossy(&output.stderr));
+    d.stop().await;
+}
