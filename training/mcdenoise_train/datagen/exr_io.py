@@ -1,0 +1,83 @@
+"""Frames as OpenEXR files in the layout of docs/frame-layout.md.
+
+Single-part scanline files, float32 samples, ZIP compression, channel names exactly as
+the engine reads them. Metadata (scene, seed, spp, covariance scale, ...) goes into
+string/float header attributes prefixed `mcdenoise.`. Files are written atomically: to a
+temporary name in the same directory, then renamed, so an interrupted run never leaves a
+truncated frame under the final name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+
+#: Every channel of a frame with covariance, in the layout's naming.
+CHANNELS_NOCOV = (
+    "R", "G", "B", "colorVariance.Z",
+    "diffuse.R", "diffuse.G", "diffuse.B", "diffuseVariance.Z",
+    "specular.R", "specular.G", "specular.B", "specularVariance.Z",
+    "albedo.R", "albedo.G", "albedo.B", "albedoVariance.Z",
+    "normal.R", "normal.G", "normal.B", "normalVariance.Z",
+    "depth.Z", "depthVariance.Z",
+)
+CHANNELS = CHANNELS_NOCOV + ("covariance", "covarianceVariance.Z")
+
+
+def _attr(v):
+    if isinstance(v, (bool, np.bool_)):
+        return str(bool(v)).lower()
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v)
+    if isinstance(v, str):
+        return v
+    return json.dumps(v)
+
+
+def write_frame(path, channels: dict, meta: dict | None = None, compression=OpenEXR.ZIP_COMPRESSION) -> None:
+    """Write `channels` (name -> (H, W) array) atomically as a float32 single-part EXR."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    header = {"compression": compression, "type": OpenEXR.scanlineimage}
+    for k, v in (meta or {}).items():
+        header[f"mcdenoise.{k}"] = _attr(v)
+    data = {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with OpenEXR.File(header, data) as f:
+            f.write(tmp)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_frame(path) -> tuple[dict, dict]:
+    """(channels, metadata) of an EXR: float32 (H, W) arrays by full channel name, and the
+    `mcdenoise.*` header attributes without the prefix."""
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        ch = {k: np.asarray(c.pixels, np.float32) for k, c in f.channels().items()}
+        meta = {k[len("mcdenoise."):]: v for k, v in f.header().items() if k.startswith("mcdenoise.")}
+    return ch, meta
+
+
+def is_complete(path, expect_channels=CHANNELS) -> bool:
+    """Whether `path` is a readable frame with all `expect_channels` (used to resume)."""
+    if not os.path.isfile(path):
+        return False
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            names = set(f.channels().keys())
+        return set(expect_channels) <= names
+    except Exception:
+        return False

@@ -1,0 +1,212 @@
+"""Data generator: renders tiny frames with Mitsuba 3 (LLVM) and checks their invariants.
+
+- every channel of docs/frame-layout.md is written, with the names the engine reads;
+- diffuse + specular = colour, per pixel, within float rounding;
+- the variance channels agree with the observed squared error against an independent
+  reference: mean(w (x - ref)^2) / mean(w (Var[x] + Var[ref])), w = 1 / (ref^2 + 0.01),
+  within a factor 2 (0.5 to 2), per buffer (the expectation is 1);
+- covariance is in [0, 1] and at least 5x larger on the shadow edge of `shadow_test`
+  than on its flat, lit, diffuse floor;
+- the covariance operators: a flat mirror is plain travel, a concave mirror of curvature
+  k focuses collimated light at 1/(2k);
+- the data set CLI writes a manifest, splits by scene and resumes;
+- the committed fixture frames are complete and small.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mcdenoise_train.datagen.backend import set_variant
+
+mi = set_variant("llvm_ad_rgb")
+
+import drjit as dr  # noqa: E402
+
+from mcdenoise_train.datagen import covariance as cv  # noqa: E402
+from mcdenoise_train.datagen import dataset, exr_io, render, scenes  # noqa: E402
+from mcdenoise_train.datagen.integrator import LUM, Options  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+FRAMES = REPO / "tests" / "fixtures" / "frames"
+LAYOUT = {
+    "R", "G", "B", "colorVariance.Z", "diffuse.R", "diffuse.G", "diffuse.B", "diffuseVariance.Z",
+    "specular.R", "specular.G", "specular.B", "specularVariance.Z", "albedo.R", "albedo.G", "albedo.B",
+    "albedoVariance.Z", "normal.R", "normal.G", "normal.B", "normalVariance.Z", "depth.Z", "depthVariance.Z",
+    "covariance", "covarianceVariance.Z",
+}
+VARIANCE_FACTOR = 2.0
+
+
+def _render(spec, w, h, spp, seed):
+    scene = scenes.build(spec, w, h)
+    pa = scenes.camera_params(spec, w)["pixel_angle"]
+    return render.render(scene, w, h, spp, seed, pa, Options())
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    spec = scenes.cornell(5)  # glossy sphere and a box: diffuse and specular both present
+    return _render(spec, 48, 48, 16, 1), _render(spec, 48, 48, 512, 10**6)
+
+
+@pytest.fixture(scope="module")
+def shadow():
+    spec = scenes.shadow_test()
+    return _render(spec, 64, 64, 16, 1), _render(spec, 64, 64, 512, 10**6)
+
+
+def test_all_channels_written(cornell, tmp_path):
+    ch, meta = render.frame_channels(cornell[0])
+    exr_io.write_frame(tmp_path / "f.exr", ch, meta)
+    back, meta2 = exr_io.read_frame(tmp_path / "f.exr")
+    assert set(back) == LAYOUT
+    assert set(exr_io.CHANNELS) == LAYOUT
+    for k, v in back.items():
+        assert v.shape == (48, 48) and v.dtype == np.float32, k
+        assert np.isfinite(v).all(), k
+    assert meta2["spp"] == 16
+    assert all(np.all(back[f"{b}Variance.Z"] >= 0) for b in ("color", "diffuse", "specular", "albedo", "normal", "depth", "covariance"))
+    assert exr_io.is_complete(tmp_path / "f.exr")
+
+
+def test_diffuse_plus_specular_is_color(cornell):
+    ch, _ = render.frame_channels(cornell[0])
+    for c in "RGB":
+        total = ch[c]
+        split = ch[f"diffuse.{c}"] + ch[f"specular.{c}"]
+        assert np.all(np.abs(split - total) <= 1e-5 * (1.0 + np.abs(total))), c
+    # both components carry light in this scene (the split is not trivial)
+    assert ch["diffuse.G"].mean() > 0.05 and ch["specular.G"].mean() > 0.005
+
+
+@pytest.mark.parametrize("which", ["cornell", "shadow"])
+@pytest.mark.parametrize("buf", ["color", "diffuse", "specular", "albedo", "normal", "depth", "cov"])
+def test_variance_matches_error(which, buf, request):
+    noisy, ref = request.getfixturevalue(which)
+
+    def mv(m):
+        if buf == "cov":  # energy-weighted mean of the per-sample feature, before normalisation
+            r, v = m.cov_mean_and_var()
+            return r[..., None], v[..., None]
+        return m.mean[buf], m.var_of_mean(buf)
+
+    (xn, vn), (xr, vr) = mv(noisy), mv(ref)
+    nc = xn.shape[-1]
+    w = LUM if nc == 3 else (1.0,)
+    # relative weighting 1 / (ref^2 + 0.01) (as in relMSE): keeps a few bright fireflies from
+    # deciding the ratio; it does not change its expectation (the weights are fixed by the
+    # independent reference)
+    rel = 1.0 / (sum(w[c] * xr[..., c] for c in range(nc)) ** 2 + 0.01)
+    err = sum(w[c] * (xn[..., c] - xr[..., c]) ** 2 for c in range(nc)) * rel
+    var = sum(w[c] * (vn[..., c] + vr[..., c]) for c in range(nc)) * rel
+    if var.mean() < 1e-12:  # buffer without noise in this scene (e.g. specular of shadow_test)
+        assert err.mean() < 1e-10
+        return
+    ratio = err.mean() / var.mean()
+    assert 1 / VARIANCE_FACTOR < ratio < VARIANCE_FACTOR, f"{which}/{buf}: error/variance = {ratio:.3f}"
+
+
+def test_reference_error_below_input(cornell):
+    noisy, ref = cornell
+    rv = ref.var_of_mean("color").mean()
+    nv = noisy.var_of_mean("color").mean()
+    assert rv < nv / 10  # 512 vs 16 spp: expected 1/32
+
+
+def test_covariance_range_and_shadow_edge(shadow):
+    noisy, ref = shadow
+    for m in (noisy, ref):
+        ch, meta = render.frame_channels(m)
+        cov = ch["covariance"]
+        assert cov.min() >= 0 and cov.max() <= 1 and meta["covariance_scale"] > 0
+        col = scenes.shadow_test_edge_column(64)  # edge between columns 31 and 32
+        lum = ch["R"]
+        edge = cov[8:56, int(col) - 2:int(col) + 2]
+        # flat diffuse floor on the lit side, far from the edge and the wall
+        flat = cov[8:56, 2:20]
+        assert lum[8:56, 2:20].min() > 0.1  # lit
+        assert edge.mean() > 5 * flat.mean(), (edge.mean(), flat.mean())
+
+
+def _cov_full(S):
+    return np.block([[np.array([[float(S.A[i][j][0]) for j in range(2)] for i in range(2)]),
+                      np.array([[float(S.B[i][j][0]) for j in range(2)] for i in range(2)])],
+                     [np.array([[float(S.B[j][i][0]) for j in range(2)] for i in range(2)]),
+                      np.array([[float(S.C[i][j][0]) for j in range(2)] for i in range(2)])]])
+
+
+def test_covariance_flat_mirror_is_travel():
+    V = mi.Vector3f
+    geo = cv.SurfaceGeo(V(0, 1, 0), V(1, 0, 0), V(0, 0, 1), cv.eye2(mi.Float(0.0)))
+    wi, wo = dr.normalize(V(1, -1, 0)), dr.normalize(V(1, 1, 0))
+    S = cv.light_at_receiver(mi.Float(50.0), mi.Float(2.0), mi.Float(0.0), cv.zeros2())
+    S1 = cv.travel(cv.specular_transfer(S, geo, wi, cv.basis(-wi), wo, cv.basis(-wo), mi.Bool(False),
+                                        mi.Float(1.0), mi.Float(cv.B_INFINITE)), mi.Float(1.5))
+    S2 = cv.light_at_receiver(mi.Float(50.0 * (3.5 / 2.0) ** 2), mi.Float(3.5), mi.Float(0.0), cv.zeros2())
+    np.testing.assert_allclose(np.linalg.eigvalsh(_cov_full(S1)), np.linalg.eigvalsh(_cov_full(S2)), rtol=1e-3, atol=1e-3)
+
+
+def test_covariance_concave_mirror_focuses():
+    V = mi.Vector3f
+    wi, wo = V(0, -1, 0), V(0, 1, 0)
+    S0 = cv.light_at_receiver(mi.Float(1e4), mi.Float(float("inf")), mi.Float(0.0), cv.zeros2())
+    ds = np.linspace(0.0, 2.0, 41)
+    for k, focus in ((-1.0, 0.5), (-0.5, 1.0)):
+        geo = cv.SurfaceGeo(V(0, 1, 0), V(1, 0, 0), V(0, 0, 1), cv.eye2(mi.Float(k)))
+        S1 = cv.specular_transfer(S0, geo, wi, cv.basis(-wi), wo, cv.basis(-wo), mi.Bool(False), mi.Float(1.0),
+                                  mi.Float(cv.B_INFINITE))
+        irr = []
+        for d in ds:  # spatial frequency of the irradiance a diffuse receiver at distance d sees
+            St = cv.travel(S1, mi.Float(float(d)))
+            irr.append(float((St.A - St.B @ cv.inv2(St.C + cv.eye2(1e-3)) @ cv.T(St.B))[0][0][0]))
+        assert abs(ds[int(np.argmax(irr))] - focus) < 0.06
+
+
+def test_scene_generator_is_seeded_and_varied():
+    a, b = scenes.generate(42), scenes.generate(42)
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+    kinds = {scenes.generate(s)["kind"] for s in range(12)}
+    assert kinds == set(scenes.KINDS)
+    mats = {o["material"]["type"] for s in range(30) for o in scenes.generate(s)["objects"] if "material" in o}
+    assert {"diffuse", "roughplastic", "roughconductor", "dielectric"} <= mats
+    for s in range(3):
+        scenes.build(scenes.generate(s), 8, 8)  # loads (meshes, textures, instances)
+
+
+def test_dataset_cli_manifest_split_resume(tmp_path):
+    args = ["--out", str(tmp_path), "--scenes", "2", "--size", "16", "--spp", "2,4", "--ref-spp", "8",
+            "--val-fraction", "0.5", "--no-progress", "--kinds", "cornell"]
+    assert dataset.main(args) == 0
+    recs = dataset.read_manifest(tmp_path / "manifest.jsonl")
+    assert [r["split"] for r in recs] == ["train", "val"]
+    for r in recs:
+        assert set(r["frames"]) == {"2", "4", "ref"}
+        for f in r["frames"].values():
+            assert exr_io.is_complete(tmp_path / f["path"])  # relative to --out
+        assert all(np.isfinite(v) and v > 0 for v in r["ref_variance_ratio"]["4"].values())
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["rendered"] == 2
+    # resume: nothing to do; then one missing frame makes that scene render again
+    assert dataset.main(args) == 0
+    assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2
+    (tmp_path / recs[1]["frames"]["2"]["path"]).unlink()
+    assert dataset.main(args) == 0
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert (s["rendered"], s["skipped"]) == (1, 1)
+    assert not list(tmp_path.rglob("*.tmp"))
+
+
+def test_committed_fixture_frames():
+    files = sorted(FRAMES.glob("*.exr"))
+    names = {f.name for f in files}
+    assert {"cornell-spp8.exr", "cornell-ref.exr", "cornell-nocov-spp8.exr", "caustic-spp8.exr", "caustic-ref.exr"} <= names
+    assert sum(f.stat().st_size for f in files) < 5 * 2**20
+    for f in files:
+        ch, _ = exr_io.read_frame(f)
+        want = LAYOUT - {"covariance", "covarianceVariance.Z"} if "nocov" in f.name else LAYOUT
+        assert set(ch) == want, f.name
