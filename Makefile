@@ -5,7 +5,7 @@ export MCDENOISE_HOME
 export ORT_DYLIB_PATH ?= $(MCDENOISE_HOME)/lib/libonnxruntime.so.1.31.1
 export MCDENOISE_BIN := $(CURDIR)/target/release/mcdenoise
 
-.PHONY: setup build test test-rust test-python demo
+.PHONY: setup build test serve train eval
 
 setup:
 	bash scripts/setup
@@ -19,11 +19,10 @@ test: build
 	cargo test --release --locked
 	cd training && $(PY) -m pytest -q tests
 
-## Denoises a committed fixture frame with the committed test models and prints the
-## per-stage timings and metrics.
-demo: build
-	$(MCDENOISE_BIN) run tests/fixtures/frames/cornell-spp8.exr -o out/demo.exr \
-	  --reference tests/fixtures/frames/cornell-ref.exr --models models
+## Runs the daemon with the shipped models on its defaults (HTTP :8080, gRPC :50051,
+## data in ./mcdenoise-data); see docs/api.md for the options.
+serve: build
+	$(MCDENOISE_BIN) serve --models models
 
 ## Training data (docs/training-data.md). `make dataset N=100 SIZE=256` renders N procedural
 ## scenes into data/: noisy frames at each of SPP (comma-separated) and a REF_SPP reference
@@ -44,3 +43,20 @@ dataset: setup
 ## Regenerates the committed test frames in tests/fixtures/frames (see its README).
 fixtures: setup
 	cd training && $(PY) -m mcdenoise_train.datagen.fixtures --out $(CURDIR)/tests/fixtures/frames
+
+## Training (training/mcdenoise_train/train.py). The defaults are the network size that
+## trains on a 2-core CPU in about half an hour; for the paper's size on a GPU use
+## TRAIN_ARGS="--width 64 --blocks 8 --predictor-width 128 --predictor-depth 4 --head-kernel 3 --patch 128 --steps 50000".
+VARIANT ?= full
+RUN ?= runs/$(VARIANT)
+TRAIN_ARGS ?= --width 24 --blocks 4 --predictor-width 48 --predictor-depth 4 --head-kernel 1 \
+  --patch 64 --batch 4 --steps 1500 --val-every 250 --lr 5e-4 --val-frames 30
+
+train: build
+	cd training && $(PY) -m mcdenoise_train.train --data $(abspath $(DATA)) --out $(abspath $(RUN)) \
+	  --variant $(VARIANT) $(TRAIN_ARGS) --resume --export $(CURDIR)/models
+
+## Quality on the validation scenes: noisy input, both shipped variants and OIDN.
+eval: build
+	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val \
+	  --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --oidn --out $(CURDIR)/eval

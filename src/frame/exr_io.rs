@@ -9,16 +9,21 @@ use exr::prelude::*;
 
 use super::{FrameError, Limits, NamedPlanes, Plane};
 
-/// Reads every channel of every part: `(width, height, [(full name, plane)])`.
-///
-/// In a multi-part file a channel's full name is `<part name>.<channel>`, unless the
-/// channel name already starts with the part name.
-pub(super) fn read_planes(
-    bytes: &[u8],
-    limits: &Limits,
-) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
-    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(bytes), false).map_err(map_exr_error)?;
+/// What an EXR header says, read without decompressing any pixel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HeaderInfo {
+    pub width: usize,
+    pub height: usize,
+    /// Full channel names (see [`read_planes`]), in file order.
+    pub channels: Vec<String>,
+}
+
+/// Reads and checks the headers: size limit, deep data, subsampling, parts of different
+/// sizes, duplicate channels.
+pub fn read_header(reader: impl std::io::Read, limits: &Limits) -> std::result::Result<HeaderInfo, FrameError> {
+    let meta = exr::meta::MetaData::read_from_buffered(reader, false).map_err(map_exr_error)?;
     let mut size: Option<(String, (usize, usize))> = None;
+    let mut channels: Vec<String> = Vec::new();
     for header in meta.headers.iter() {
         let part = header.own_attributes.layer_name.as_ref().map(|t| t.to_string()).unwrap_or_default();
         if header.deep {
@@ -35,7 +40,7 @@ pub(super) fn read_planes(
                 return Err(FrameError::Subsampled(name));
             }
             match &size {
-                None => size = Some((name, (w, h))),
+                None => size = Some((name.clone(), (w, h))),
                 Some((reference, expected)) if *expected != (w, h) => {
                     return Err(FrameError::SizeMismatch {
                         channel: name,
@@ -46,6 +51,10 @@ pub(super) fn read_planes(
                 }
                 Some(_) => {}
             }
+            if channels.contains(&name) {
+                return Err(FrameError::DuplicateChannel(name));
+            }
+            channels.push(name);
         }
     }
     let Some((_, (width, height))) = size else {
@@ -54,6 +63,18 @@ pub(super) fn read_planes(
     if width == 0 || height == 0 {
         return Err(FrameError::Empty { width, height });
     }
+    Ok(HeaderInfo { width, height, channels })
+}
+
+/// Reads every channel of every part: `(width, height, [(full name, plane)])`.
+///
+/// In a multi-part file a channel's full name is `<part name>.<channel>`, unless the
+/// channel name already starts with the part name.
+pub(super) fn read_planes(
+    bytes: &[u8],
+    limits: &Limits,
+) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
+    let HeaderInfo { width, height, .. } = read_header(Cursor::new(bytes), limits)?;
 
     let image = read()
         .no_deep_data()
@@ -70,9 +91,6 @@ pub(super) fn read_planes(
         let part = layer.attributes.layer_name.as_ref().map(|t| t.to_string()).unwrap_or_default();
         for channel in layer.channel_data.list {
             let name = full_name(&part, &channel.name.to_string());
-            if planes.iter().any(|(n, _)| *n == name) {
-                return Err(FrameError::DuplicateChannel(name));
-            }
             let plane: Plane = match channel.sample_data {
                 FlatSamples::F16(v) => v.into_iter().map(f16::to_f32).collect(),
                 FlatSamples::F32(v) => v,

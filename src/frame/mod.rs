@@ -5,7 +5,7 @@
 mod exr_io;
 pub mod layout;
 
-pub use exr_io::{write_exr, OutputLayer};
+pub use exr_io::{read_header, write_exr, HeaderInfo, OutputLayer};
 pub use layout::{Buffer, BUFFER_COUNT};
 
 use serde::Serialize;
@@ -99,17 +99,8 @@ impl Frame {
             return Err(FrameError::Empty { width, height });
         }
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
+        check_required(&names, required)?;
         let resolved = layout::resolve(&names);
-        let missing: Vec<String> = required
-            .iter()
-            .filter(|b| resolved[**b as usize].is_none())
-            .flat_map(|b| layout::spec(*b).alternatives[0].iter().map(|s| s.to_string()))
-            .collect();
-        if !missing.is_empty() {
-            let mut available: Vec<String> = names.iter().map(|s| s.to_string()).collect();
-            available.sort();
-            return Err(FrameError::MissingChannels { missing, available });
-        }
         let mut buffers: [Option<Vec<Plane>>; BUFFER_COUNT] = Default::default();
         let mut sanitized = Sanitized::default();
         for buffer in Buffer::ALL {
@@ -192,17 +183,45 @@ impl Frame {
     pub fn reference_from_exr_bytes(bytes: &[u8], limits: &Limits) -> Result<Frame, FrameError> {
         let (w, h, planes) = exr_io::read_planes(bytes, limits)?;
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
-        let required: &[Buffer] = if layout::resolve(&names)[Buffer::Color as usize].is_some() {
-            &[Buffer::Color]
-        } else {
-            &[Buffer::Diffuse, Buffer::Specular]
-        };
-        Frame::from_planes(w, h, planes, required).map_err(|e| match e {
-            FrameError::MissingChannels { available, .. } => FrameError::MissingChannels {
-                missing: vec!["R, G, B (or diffuse.R/G/B and specular.R/G/B)".into()],
-                available,
-            },
-            other => other,
-        })
+        check_reference(&names)?;
+        let required = reference_buffers(&names);
+        Frame::from_planes(w, h, planes, required)
     }
+}
+
+/// Checks that channels `names` provide every buffer of `required`; the error lists the
+/// canonical names of what is missing and every name the file has.
+pub fn check_required(names: &[&str], required: &[Buffer]) -> Result<(), FrameError> {
+    let resolved = layout::resolve(names);
+    let missing: Vec<String> = required
+        .iter()
+        .filter(|b| resolved[**b as usize].is_none())
+        .flat_map(|b| layout::spec(*b).alternatives[0].iter().map(|s| s.to_string()))
+        .collect();
+    if missing.is_empty() {
+        return Ok(());
+    }
+    let mut available: Vec<String> = names.iter().map(|s| s.to_string()).collect();
+    available.sort();
+    Err(FrameError::MissingChannels { missing, available })
+}
+
+/// The buffers a reference is read from: `R,G,B` when present, else diffuse and specular.
+fn reference_buffers(names: &[&str]) -> &'static [Buffer] {
+    if layout::resolve(names)[Buffer::Color as usize].is_some() {
+        &[Buffer::Color]
+    } else {
+        &[Buffer::Diffuse, Buffer::Specular]
+    }
+}
+
+/// Checks that channels `names` hold a reference color (`R,G,B`, or diffuse and specular).
+pub fn check_reference(names: &[&str]) -> Result<(), FrameError> {
+    check_required(names, reference_buffers(names)).map_err(|e| match e {
+        FrameError::MissingChannels { available, .. } => FrameError::MissingChannels {
+            missing: vec!["R, G, B (or diffuse.R/G/B and specular.R/G/B)".into()],
+            available,
+        },
+        other => other,
+    })
 }

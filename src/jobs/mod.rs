@@ -366,7 +366,7 @@ impl JobService {
         self.inner.telemetry.job_rejected(reason);
     }
 
-    fn enqueue(&self, ticket: &Ticket, info: validate::HeaderInfo) -> Result<JobStatus> {
+    fn enqueue(&self, ticket: &Ticket, info: crate::frame::HeaderInfo) -> Result<JobStatus> {
         let now = now_ms();
         let deadline = ticket
             .options
@@ -1041,7 +1041,7 @@ impl Ticket {
         let input = store.input_path(&self.id);
         let reference = self.reference.map(|_| store.reference_path(&self.id));
         let limits = self.service.inner.settings.limits;
-        let info = tokio::task::spawn_blocking(move || -> Result<validate::HeaderInfo> {
+        let info = tokio::task::spawn_blocking(move || -> Result<crate::frame::HeaderInfo> {
             let info = validate::check_frame(&input, &limits).map_err(|e| Error::frame("frame", e))?;
             if let Some(reference) = reference {
                 let r = validate::check_reference(&reference, &limits).map_err(|e| Error::frame("reference", e))?;
