@@ -45,24 +45,21 @@ def read_manifest(data_dir: str | os.PathLike) -> list[dict]:
     data_dir = Path(data_dir)
     records = []
     with open(data_dir / "manifest.jsonl") as f:
-        for line in f:
-            if not line.strip():
-                continue
-            r = json.loads(line)
-            if "frames" in r:
-                if not r.get("complete", True) or "ref" not in r["frames"]:
-                    continue
-                ref = r["frames"]["ref"]["path"]
-                for spp, frame in sorted(r["frames"].items(), key=lambda kv: kv[0]):
-                    if spp == "ref":
-                        continue
-                    records.append({"scene": r["scene"], "seed": r.get("seed"), "split": r.get("split", "train"),
-                                    "spp": int(spp), "noisy": str(data_dir / frame["path"]),
-                                    "reference": str(data_dir / ref)})
-            else:
-                r["noisy"] = str(data_dir / r["noisy"])
-                r["reference"] = str(data_dir / r["reference"])
-                records.append(r)
+        lines = [json.loads(line) for line in f if line.strip()]
+    # A scene rendered again appends a new record: the last one wins.
+    last = {r["scene"]: i for i, r in enumerate(lines) if "frames" in r}
+    for i, r in enumerate(lines):
+        if "frames" not in r:
+            records.append({**r, "noisy": str(data_dir / r["noisy"]), "reference": str(data_dir / r["reference"])})
+            continue
+        if last[r["scene"]] != i or not r.get("complete", True) or "ref" not in r["frames"]:
+            continue
+        ref = r["frames"]["ref"]["path"]
+        for spp, frame in r["frames"].items():
+            if spp != "ref":
+                records.append({"scene": r["scene"], "seed": r.get("seed"), "split": r.get("split", "train"),
+                                "spp": int(spp), "noisy": str(data_dir / frame["path"]),
+                                "reference": str(data_dir / ref)})
     return records
 
 
