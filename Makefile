@@ -50,7 +50,7 @@ fixtures: setup
 VARIANT ?= full
 RUN ?= runs/$(VARIANT)
 TRAIN_ARGS ?= --width 24 --blocks 4 --predictor-width 48 --predictor-depth 4 --head-kernel 1 \
-  --patch 64 --batch 4 --steps 1500 --val-every 250 --lr 5e-4 --val-frames 30
+  --patch 64 --batch 4 --steps 2000 --val-every 250 --lr 3e-4 --log-l1 1
 
 train: build
 	cd training && $(PY) -m mcdenoise_train.train --data $(abspath $(DATA)) --out $(abspath $(RUN)) \

@@ -119,9 +119,16 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
+/// A temporary name beside `path`, unique to this process, so that concurrent writers of
+/// the same file do not collide.
+fn temporary_beside(path: &Path) -> PathBuf {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("tmp");
+    path.with_extension(format!("{ext}.{}.part", std::process::id()))
+}
+
 /// Writes a file atomically: to a temporary name beside it, then renamed.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension(format!("{}.part", path.extension().and_then(|e| e.to_str()).unwrap_or("tmp")));
+    let tmp = temporary_beside(path);
     fs::write(&tmp, bytes).with_context(|| format!("cannot write {}", tmp.display()))?;
     fs::rename(&tmp, path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
 }
@@ -239,7 +246,7 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     let albedo = frame.planes(Buffer::Albedo);
     let noisy = frame.diffuse_plus_specular();
 
-    let tmp = args.output.with_extension("npz.part");
+    let tmp = temporary_beside(&args.output);
     let file = fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
     let mut npz = ndarray_npy::NpzWriter::new(file);
     npz.add_array("diffuse_color", &shaped(inputs.diffuse)?)?;

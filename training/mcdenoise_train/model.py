@@ -33,7 +33,10 @@ extractors run in parallel, so the larger of the two counts). `flops_per_pixel()
 2 FLOPs per multiply-add of the convs, i.e. 2 * (weights of all convs); biases, ReLUs and
 the residual additions (a few thousand operations, < 0.1%) are not counted.
 
-Weights are initialised Xavier-uniform, biases zero.
+Inputs are compressed with `symlog` (sign(x) ln(1 + |x|)) before the first convolution
+(`input_transform`, part of the exported graph): the preprocessed tensors are unbounded.
+Weights are initialised Xavier-uniform (the kernel head's scaled by `HEAD_INIT_GAIN`, 0.1,
+so that training starts from nearly uniform kernels), biases zero.
 """
 
 from __future__ import annotations
@@ -44,6 +47,20 @@ from torch import nn
 from .contract import COLOR_CHANNELS, KERNEL_TAPS, variant_for
 
 ARCHS = ("separate", "joint", "kpcn")
+INPUT_TRANSFORMS = ("symlog", "none")
+HEAD_INIT_GAIN = 0.1
+
+
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    """sign(x) ln(1 + |x|): compresses the network's inputs.
+
+    The preprocessed tensors are unbounded: the diffuse variance is divided by
+    (albedo + 0.00316)^2 (up to ~1e5 where the albedo is near zero), irradiance reaches
+    hundreds next to small lights. Fed as they are, such values drive the logits to
+    thousands and the softmax to a single, wrong tap. The network sees them compressed;
+    the kernels still filter the uncompressed preprocessed color.
+    """
+    return torch.sign(x) * torch.log1p(torch.abs(x))
 
 
 def _conv(cin: int, cout: int, k: int = 3) -> nn.Conv2d:
@@ -141,8 +158,12 @@ class DenoiserNet(nn.Module):
         joint_width: int | None = None,
         layers: int = 9,
         conv_kernel: int = 5,
+        input_transform: str = "symlog",
     ):
         super().__init__()
+        if input_transform not in INPUT_TRANSFORMS:
+            raise ValueError(f"unknown input_transform {input_transform!r}; expected one of {INPUT_TRANSFORMS}")
+        self.input_transform = input_transform
         if arch not in ARCHS:
             raise ValueError(f"unknown arch {arch!r}; expected one of {ARCHS}")
         variant_for(in_features)  # validates the channel count
@@ -187,19 +208,27 @@ class DenoiserNet(nn.Module):
                 cin = width
             self.net = nn.Sequential(*chain)
 
+        self.config["input_transform"] = input_transform
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.xavier_uniform_(m.weight)
-                nn.init.zeros_(m.bias)
+        convs = [m for m in self.modules() if isinstance(m, nn.Conv2d)]
+        for m in convs:
+            nn.init.xavier_uniform_(m.weight)
+            nn.init.zeros_(m.bias)
+        # The kernel head starts small, so the first kernels are close to a uniform 21x21
+        # box: a saturated softmax (one tap near 1) passes almost no gradient, and a
+        # network that starts there learns one-hot kernels that copy a neighbour.
+        with torch.no_grad():
+            convs[-1].weight.mul_(HEAD_INIT_GAIN)
 
     @property
     def variant(self) -> str:
         return variant_for(self.in_features)
 
     def forward(self, color: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        if self.input_transform == "symlog":
+            color, features = symlog(color), symlog(features)
         if self.arch == "separate":
             x = torch.cat([self.color_extractor(color), self.feature_extractor(features)], 1)
             return self.predictor(x)

@@ -9,8 +9,9 @@ What happens (Lin et al. 2020, Sec. 5; KPCN patch selection):
   Xavier initialisation); each step trains both on the same patches;
 - the diffuse loss compares the filtered irradiance `d'` with the reference irradiance,
   the specular loss compares in the log domain `ln(1 + s)`, as in the paper;
-- the loss is SMAPE, plus `--perceptual W` times a perceptual loss when a pretrained
-  feature extractor is available (`perceptual.py`);
+- the loss is SMAPE, plus `--perceptual W` times the perceptual loss on ImageNet VGG-16
+  features (`perceptual.py`), plus `--log-l1 W` times an L1 term in the log domain
+  (`log_l1`: SMAPE alone gives no gradient against bright leaks onto dark targets);
 - every `--val-every` steps the whole validation frames are denoised (both networks,
   inverse transforms, diffuse + specular) and RelMSE / DSSIM against the reference are
   logged; the best checkpoint by validation RelMSE is kept as `best.pt`;
@@ -47,6 +48,20 @@ def smape(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     return (2.0 * (x - y).abs() / (x.abs() + y.abs() + SMAPE_EPS)).mean()
 
 
+def log_l1(x: torch.Tensor, y: torch.Tensor, component: str) -> torch.Tensor:
+    """L1 in a log domain: the specular tensors already are (ln(1 + s)); the diffuse
+    irradiance is taken to ln(1 + max(x, 0)) first.
+
+    SMAPE alone saturates: where the target is ~0 (a diffuse wall has no specular, a
+    shadow little irradiance) and the output is large, |x - y| / (|x| + |y| + eps) is ~1
+    whatever x is, so its gradient vanishes and a kernel that leaks a bright light into
+    its neighbours is never corrected. L1 keeps a constant gradient there.
+    """
+    if component == "diffuse":
+        x, y = torch.log1p(x.clamp_min(0)), torch.log1p(y.clamp_min(0))
+    return (x - y).abs().mean()
+
+
 def relmse(x: np.ndarray, r: np.ndarray) -> float:
     return float(np.mean((x - r) ** 2 / (r * r + 0.01)))
 
@@ -56,12 +71,16 @@ COLOR = {"diffuse": "diffuse_color", "specular": "specular_color"}
 
 
 def component_loss(net: DenoiserNet, batch: dict[str, torch.Tensor], component: str, perceptual=None,
-                   perceptual_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+                   perceptual_weight: float = 0.0, l1_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
     color = batch[COLOR[component]]
     out = apply_kernel(net(color, batch["features"]), color[:, :3])
     target = batch[TARGET[component]]
     loss = smape(out, target)
     parts = {"smape": float(loss.detach())}
+    if l1_weight > 0:
+        l1 = log_l1(out, target, component)
+        parts["log_l1"] = float(l1.detach())
+        loss = loss + l1_weight * l1
     if perceptual is not None and perceptual_weight > 0:
         # The perceptual features see the component in its own (irradiance / log) domain.
         p = perceptual(out, target)
@@ -139,6 +158,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--patch", type=int, default=128)
     p.add_argument("--lr", type=float, default=1e-4)
     p.add_argument("--perceptual", type=float, default=0.0, help="weight of the perceptual loss (0: SMAPE only)")
+    p.add_argument("--log-l1", type=float, default=0.0, help="weight of an L1 term in the log domain (see log_l1)")
     p.add_argument("--val-every", type=int, default=500)
     p.add_argument("--val-frames", type=int, default=None, help="at most this many validation frames")
     p.add_argument("--seed", type=int, default=0)
@@ -200,7 +220,7 @@ def main(argv=None) -> int:
                  for k, v in sampler.sample(a.batch, rng).items()}
         row = {"step": step + 1}
         for c in COMPONENTS:
-            loss, parts = component_loss(models[c], batch, c, perceptual, a.perceptual)
+            loss, parts = component_loss(models[c], batch, c, perceptual, a.perceptual, a.log_l1)
             opts[c].zero_grad(set_to_none=True)
             loss.backward()
             opts[c].step()
