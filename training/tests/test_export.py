@@ -51,7 +51,11 @@ def test_export_graph_metadata_and_ort(tmp_path, arch, variant):
     onnx.checker.check_model(proto, full_check=True)
     assert max(o.version for o in proto.opset_import if o.domain in ("", "ai.onnx")) >= 17
     g = proto.graph
-    assert {n.op_type for n in g.node} <= {"Conv", "Relu", "Add", "Concat"}
+    from mcdenoise_train.export import ALLOWED_OPS
+
+    ops = {n.op_type for n in g.node}
+    assert ops <= ALLOWED_OPS
+    assert {"Conv", "Relu", "Sign", "Log"} <= ops  # the network and its symlog input transform
     inits = {i.name for i in g.initializer}
     assert all(i.data_type == onnx.TensorProto.FLOAT for i in g.initializer)
 

@@ -106,7 +106,7 @@ def test_paper_config_numbers():
 
 def test_kpcn_defaults():
     net = DenoiserNet(arch="kpcn")
-    assert net.config == dict(arch="kpcn", in_features=28, width=100, layers=9, conv_kernel=5)
+    assert net.config == dict(arch="kpcn", in_features=28, width=100, layers=9, conv_kernel=5, input_transform="symlog")
     assert net.receptive_radius() == 18
     convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
     assert len(convs) == 9 and all(m.kernel_size == (5, 5) for m in convs)
@@ -172,3 +172,17 @@ def test_feature_lists_and_nocov_selection():
     assert sel.shape == (2, 24, 2, 3)
     assert torch.equal(sel[:, 7], full[:, 8])  # normalVariance follows depth
     assert select_nocov(full[0].numpy()).shape == (24, 2, 3)
+
+
+def test_symlog_compresses_inputs_and_the_head_starts_near_uniform():
+    from mcdenoise_train.model import symlog
+
+    x = torch.tensor([-1e5, -1.0, 0.0, 1.0, 1e5])
+    assert torch.allclose(symlog(x), torch.sign(x) * torch.log1p(x.abs()))
+    torch.manual_seed(0)
+    net = DenoiserNet(arch="separate", in_features=28, width=8, blocks=1, predictor_width=8, predictor_depth=2)
+    color, features = torch.rand(1, 10, 24, 24) * 1e4, torch.rand(1, 28, 24, 24) * 1e4
+    logits = net(color, features)
+    # Huge inputs still give a spread of logits far from saturating the softmax.
+    assert logits.abs().max() < 5.0
+    assert DenoiserNet(arch="separate", in_features=28, input_transform="none").config["input_transform"] == "none"
