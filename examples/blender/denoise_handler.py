@@ -1,0 +1,53 @@
+"""Blender: denoise every frame Blender writes during an animation render with mcdenoise.
+
+    MCDENOISE_SERVER=http://mcdenoise.farm:8080 MCDENOISE_TOKEN=... \
+      blender -b shot.blend -P examples/blender/denoise_handler.py -a
+
+A `render_write` handler (called after each frame file is written) hands the frame to
+examples/farm/denoise_hook.py on a background thread, so Blender renders the next frame
+meanwhile; `render_complete` waits for the outstanding frames and prints a summary. The
+denoised frame is written next to the rendered one (`0001.exr` -> `0001.denoised.exr`).
+
+The output must be an OpenEXR in the layout of docs/frame-layout.md: diffuse, specular,
+albedo, normal and depth with their variances. Cycles' own passes have other names and no
+variances, so a stock Cycles render is refused (422, missing channels named in Blender's
+console); the scene has to write that layout, e.g. from a compositor File Output node.
+"""
+
+import os
+import sys
+from concurrent.futures import ThreadPoolExecutor
+
+import bpy
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "farm"))
+import denoise_hook  # noqa: E402  (also puts clients/python on the path)
+
+_client = denoise_hook.mc.Client(
+    os.environ.get("MCDENOISE_SERVER", "http://127.0.0.1:8080"), token=os.environ.get("MCDENOISE_TOKEN")
+)
+_pool = ThreadPoolExecutor(max_workers=2)
+_pending = []
+
+
+def _on_write(scene, *_):
+    path = bpy.path.abspath(scene.render.frame_path(frame=scene.frame_current))
+    if path.lower().endswith(".exr"):
+        _pending.append((path, _pool.submit(denoise_hook.denoise_frame, path, _client, label=scene.name)))
+
+
+def _on_complete(*_):
+    failed = 0
+    for path, fut in _pending:
+        try:
+            fut.result()
+        except Exception as e:  # report every frame, keep Blender's exit status
+            failed += 1
+            print(f"mcdenoise: {path}: {e}", file=sys.stderr)
+    print(f"mcdenoise: {len(_pending) - failed} of {len(_pending)} frames denoised", file=sys.stderr)
+    _pending.clear()
+
+
+bpy.app.handlers.render_write.append(_on_write)
+bpy.app.handlers.render_complete.append(_on_complete)
+bpy.app.handlers.render_cancel.append(_on_complete)
