@@ -11,13 +11,15 @@ setup:
 	bash scripts/setup
 
 build: setup
-	cargo build --release --locked
+	bash scripts/build-release
 
 ## Runs every test: Rust unit and integration tests, then the Python tests (training,
-## export, data generation, parity with the Rust engine).
+## export, data generation, parity with the Rust engine), then tests/ops (Dockerfile,
+## Kubernetes manifests, dashboard, Python client and farm hook against a real daemon).
 test: build
 	cargo test --release --locked
 	cd training && $(PY) -m pytest -q tests
+	$(PY) -m pytest -q tests/ops
 
 ## Runs the daemon with the shipped models on its defaults (HTTP :8080, gRPC :50051,
 ## data in ./mcdenoise-data); see docs/api.md for the options.
