@@ -109,9 +109,17 @@ def test_queue_full_is_retried_after_retry_after(make_daemon, tmp_path):
 
 
 def test_submission_while_loading_is_retried(make_daemon, tmp_path):
-    d = make_daemon("--debug-startup-delay", "2s", wait=False)
+    d = make_daemon("--debug-startup-delay", "3s", wait=False)
     retries = []
     client = mc.Client(d.url, token=TOKEN, retry_timeout=60, on_retry=lambda r, w: retries.append(r))
+    # Submit once the HTTP server answers (the client would also retry a refused
+    # connection, but its backoff could step over the whole loading window).
+    for _ in range(200):
+        try:
+            if d.get("/livez")[0] == 200:
+                break
+        except OSError:
+            time.sleep(0.02)
     job = client.denoise(FRAMES / "cornell-spp8.exr", tmp_path / "out.exr")
     assert job["state"] == "succeeded"
     assert any(r.startswith("503 unavailable") for r in retries), retries
