@@ -5,7 +5,7 @@ export MCDENOISE_HOME
 export ORT_DYLIB_PATH ?= $(MCDENOISE_HOME)/lib/libonnxruntime.so.1.31.1
 export MCDENOISE_BIN := $(CURDIR)/target/release/mcdenoise
 
-.PHONY: setup build test serve train eval
+.PHONY: setup build test serve train eval bench ablation
 
 setup:
 	bash scripts/setup
@@ -52,13 +52,33 @@ fixtures: setup
 VARIANT ?= full
 RUN ?= runs/$(VARIANT)
 TRAIN_ARGS ?= --width 24 --blocks 4 --predictor-width 48 --predictor-depth 4 --head-kernel 1 \
-  --patch 64 --batch 4 --steps 2000 --val-every 250 --lr 3e-4 --log-l1 1
+  --patch 64 --batch 4 --steps 2000 --val-every 250 --lr 1e-4 --log-l1 1
 
 train: build
 	cd training && $(PY) -m mcdenoise_train.train --data $(abspath $(DATA)) --out $(abspath $(RUN)) \
 	  --variant $(VARIANT) $(TRAIN_ARGS) --resume --export $(CURDIR)/models
 
-## Quality on the validation scenes: noisy input, both shipped variants and OIDN.
+## Quality (docs/results.md): the noisy input, both shipped variants and OIDN on the
+## validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
+## and sample count, with plots and side-by-side crops.
+TEST_DATA ?= data-test
+EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --oidn --crops 4
 eval: build
-	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val \
-	  --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --oidn --out $(CURDIR)/eval
+	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
+	  --out $(CURDIR)/docs/results/val
+	if [ -f $(TEST_DATA)/manifest.jsonl ]; then cd training && $(PY) -m mcdenoise_train.evaluate \
+	  --data $(abspath $(TEST_DATA)) --split val $(EVAL_METHODS) --out $(CURDIR)/docs/results/test; fi
+	$(PY) benches/report.py
+
+## Speed (docs/results.md): GEMM ceiling, ONNX Runtime alone, the engine's stages, the
+## daemon with 1, 2 and 8 clients, peak memory at 720p/1080p/4K, OIDN on the same frame.
+bench: build
+	cargo bench --locked --bench speed -- --models models --out docs/results/speed.json
+	$(PY) benches/oidn_speed.py target/bench/frame-1280x720.exr --out docs/results/oidn.json
+	$(PY) benches/report.py
+
+## The paper's ablations (models/MODEL_CARD.md): same data, seed and steps for each variant.
+ABLATION_STEPS ?= 600
+ablation: build
+	cd training && $(PY) -m mcdenoise_train.ablation --data $(abspath $(DATA)) --test-data $(abspath $(TEST_DATA)) \
+	  --out $(CURDIR)/runs/ablation --steps $(ABLATION_STEPS) --threads 1

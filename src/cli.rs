@@ -199,6 +199,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "threads": config.threads,
         "flops_per_pixel": flops,
         "sanitized": frame.sanitized,
+        "missing_variances": frame.missing_variances,
         "timings_ms": {
             "load_models": load_ms,
             "decode": decode_ms,

@@ -4,7 +4,7 @@
 mod common;
 
 use common::*;
-use mcdenoise::frame::{write_exr, Buffer, Frame, FrameError, Limits, OutputLayer};
+use mcdenoise::frame::{write_exr, Buffer, Frame, FrameError, Limits, NamedPlanes, OutputLayer};
 
 const W: usize = 19;
 const H: usize = 13;
@@ -198,4 +198,78 @@ fn reference_needs_only_a_color() {
     let err =
         Frame::reference_from_exr_bytes(&exr_single(W, H, &only_albedo, Sample::F32), &Limits::default()).unwrap_err();
     assert!(err.to_string().contains("R, G, B (or diffuse"), "{err}");
+}
+
+/// A frame as Blender Cycles writes it: one part per pass `ViewLayer.<pass>`, no diffuse or
+/// specular buffer, no variance, background depth 1e10.
+fn cycles_frame() -> (Vec<u8>, Vec<(String, Vec<f32>)>) {
+    let planes = named_planes(W, H, false);
+    let get = |n: &str| planes.iter().find(|(k, _)| k == n).unwrap().1.clone();
+    let mut parts: Vec<(String, NamedPlanes)> = Vec::new();
+    let mut pass = |name: &str, chans: &[&str], data: Vec<Vec<f32>>| {
+        let list = chans.iter().zip(data).map(|(c, d)| (c.to_string(), d)).collect();
+        parts.push((format!("ViewLayer.{name}"), list));
+    };
+    let rgb = ["R", "G", "B"];
+    let (d, s, a): (Vec<_>, Vec<_>, Vec<_>) = (
+        rgb.iter().map(|c| get(&format!("diffuse.{c}"))).collect(),
+        rgb.iter().map(|c| get(&format!("specular.{c}"))).collect(),
+        rgb.iter().map(|c| get(&format!("albedo.{c}"))).collect(),
+    );
+    let irradiance = |c: usize, share: f32| d[c].iter().zip(&a[c]).map(|(d, a)| share * d / a).collect::<Vec<f32>>();
+    pass("Combined", &["R", "G", "B", "A"], {
+        let mut v: Vec<Vec<f32>> = (0..3).map(|c| d[c].iter().zip(&s[c]).map(|(x, y)| x + y).collect()).collect();
+        v.push(vec![1.0; W * H]);
+        v
+    });
+    pass("Diffuse Direct", &rgb, (0..3).map(|c| irradiance(c, 0.7)).collect());
+    pass("Diffuse Indirect", &rgb, (0..3).map(|c| irradiance(c, 0.3)).collect());
+    pass("Diffuse Color", &rgb, a.clone());
+    pass("Denoising Albedo", &rgb, a.clone());
+    pass("Denoising Normal", &["X", "Y", "Z"], rgb.iter().map(|c| get(&format!("normal.{c}"))).collect());
+    let mut depth = get("depth.Z");
+    depth[0] = 1e10;
+    pass("Depth", &["Z"], vec![depth]);
+    let spec: Vec<_> = parts.iter().map(|(p, l)| (p.as_str(), (W, H), l.clone())).collect();
+    (exr_multi(&spec, Sample::F32), planes)
+}
+
+#[test]
+fn cycles_passes_give_the_diffuse_specular_split_and_missing_variances_are_zero() {
+    let (bytes, planes) = cycles_frame();
+    let frame = frame_of(&bytes);
+    let get = |n: &str| planes.iter().find(|(k, _)| k == n).unwrap().1.clone();
+    for (i, c) in ["R", "G", "B"].into_iter().enumerate() {
+        assert!(max_rel_diff(frame.plane(Buffer::Diffuse, i), &get(&format!("diffuse.{c}"))) < 1e-5);
+        let s = get(&format!("specular.{c}"));
+        let err = frame.plane(Buffer::Specular, i).iter().zip(&s).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(err < 1e-5, "specular.{c} off by {err}");
+    }
+    // Cycles' background distance is "no hit".
+    assert_eq!(frame.plane(Buffer::Depth, 0)[0], 0.0);
+    assert_eq!(frame.plane(Buffer::Depth, 0)[1], get("depth.Z")[1]);
+    assert_eq!(
+        frame.missing_variances,
+        ["diffuseVariance", "specularVariance", "albedoVariance", "normalVariance", "depthVariance"]
+    );
+    assert!(frame.plane(Buffer::DiffuseVariance, 0).iter().all(|v| *v == 0.0));
+    // The header check the daemon runs at submission accepts it too.
+    let names: Vec<String> = {
+        let info = mcdenoise::frame::read_header(std::io::Cursor::new(&bytes), &Limits::default()).unwrap();
+        info.channels
+    };
+    let refs: Vec<&str> = names.iter().map(String::as_str).collect();
+    mcdenoise::frame::check_required(&refs, mcdenoise::frame::layout::REQUIRED).unwrap();
+}
+
+#[test]
+fn a_frame_without_any_variance_is_accepted_and_reports_it() {
+    let planes: Vec<_> = named_planes(W, H, true).into_iter().filter(|(n, _)| !n.contains("Variance")).collect();
+    let frame = frame_of(&exr_single(W, H, &planes, Sample::F32));
+    assert_eq!(frame.missing_variances.len(), 6, "{:?}", frame.missing_variances);
+    assert!(frame.has(Buffer::CovarianceVariance));
+    // Without normals it is still refused, naming them.
+    let planes: Vec<_> = planes.into_iter().filter(|(n, _)| !n.starts_with("normal")).collect();
+    let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
+    assert!(err.to_string().contains("normal.R"), "{err}");
 }

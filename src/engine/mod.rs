@@ -231,6 +231,36 @@ impl Engine {
     }
 }
 
+impl Engine {
+    /// Time spent in ONNX Runtime alone on the regions [`Engine::denoise`] would run for
+    /// `frame` (preprocessing done beforehand and not counted, logits not consumed): the
+    /// inference floor the speed benchmark compares the engine with.
+    pub fn inference_only(&mut self, frame: &Frame, variant: Variant) -> Result<Duration, EngineError> {
+        let pair = self
+            .pairs
+            .iter_mut()
+            .find(|p| p.variant == variant)
+            .ok_or_else(|| EngineError::NoModel(format!("no `{}` model is loaded", variant.name())))?;
+        let halo = pair.receptive_radius().max(contract::KERNEL_RADIUS);
+        let stats = FrameStats::of(frame);
+        let mut total = Duration::ZERO;
+        for core in tile_grid(frame.width, frame.height, self.tile) {
+            let region = expand(core, halo, frame.width, frame.height);
+            let inputs = self.pool.install(|| preprocess::preprocess(frame, &stats, variant, region));
+            for component in Component::ALL {
+                let color = match component {
+                    Component::Diffuse => &inputs.diffuse,
+                    Component::Specular => &inputs.specular,
+                };
+                let t = Instant::now();
+                pair.network(component).run(color, &inputs.features, region.h, region.w, |_| ())?;
+                total += t.elapsed();
+            }
+        }
+        Ok(total)
+    }
+}
+
 /// Cores of side `tile` covering a `w`×`h` frame, row-major; one core for `tile == 0`.
 pub fn tile_grid(w: usize, h: usize, tile: usize) -> Vec<Rect> {
     if tile == 0 {
@@ -263,8 +293,9 @@ fn scatter(core_out: &[f32], core: Rect, w: usize, h: usize, dst: &mut [f32]) {
     }
 }
 
-/// A smooth synthetic frame with every channel, for warm-up and tests.
-pub fn synthetic_frame(w: usize, h: usize, with_covariance: bool) -> Frame {
+/// The named planes of [`synthetic_frame`] (canonical channel names), e.g. to write it as an
+/// EXR file.
+pub fn synthetic_planes(w: usize, h: usize, with_covariance: bool) -> Vec<(String, Plane)> {
     let plane = |f: &dyn Fn(f32, f32) -> f32| -> Plane {
         (0..w * h).map(|i| f((i % w) as f32 / w as f32, (i / w) as f32 / h as f32)).collect()
     };
@@ -284,5 +315,11 @@ pub fn synthetic_frame(w: usize, h: usize, with_covariance: bool) -> Frame {
         planes.push(("covariance".into(), plane(&|x, y| (x * 3.0).fract() * y)));
         planes.push(("covarianceVariance.Z".into(), plane(&|x, _| 0.001 * x)));
     }
-    Frame::from_planes(w, h, planes, crate::frame::layout::REQUIRED).expect("synthetic frame is complete")
+    planes
+}
+
+/// A smooth synthetic frame with every channel, for warm-up, tests and benchmarks.
+pub fn synthetic_frame(w: usize, h: usize, with_covariance: bool) -> Frame {
+    Frame::from_planes(w, h, synthetic_planes(w, h, with_covariance), crate::frame::layout::REQUIRED)
+        .expect("synthetic frame is complete")
 }

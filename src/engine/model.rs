@@ -33,7 +33,7 @@ fn model_error(path: &Path, reason: impl Into<String>) -> EngineError {
 /// Session options: `threads` intra-op threads, no spinning (the engine is idle between
 /// jobs), all graph optimizations. A helper returning `ort::Result` because builder errors
 /// carry the builder and are not `Send`.
-fn build_session(env: &ort::environment::Environment, path: &Path, threads: usize) -> ort::Result<Session> {
+pub fn build_session(env: &ort::environment::Environment, path: &Path, threads: usize) -> ort::Result<Session> {
     Session::builder(env)?
         .with_optimization_level(GraphOptimizationLevel::All)?
         .with_intra_threads(threads)?

@@ -113,19 +113,9 @@ pub const BUFFERS: &[BufferSpec] = &[
     BufferSpec { buffer: Buffer::Color, alternatives: &[&["R", "G", "B"]] },
 ];
 
-/// Buffers every frame must have.
-pub const REQUIRED: &[Buffer] = &[
-    Buffer::Diffuse,
-    Buffer::DiffuseVariance,
-    Buffer::Specular,
-    Buffer::SpecularVariance,
-    Buffer::Albedo,
-    Buffer::AlbedoVariance,
-    Buffer::Normal,
-    Buffer::NormalVariance,
-    Buffer::Depth,
-    Buffer::DepthVariance,
-];
+/// Buffers every frame must have. Variances are optional: missing ones are taken as 0
+/// (`Frame::fill_missing_variances`).
+pub const REQUIRED: &[Buffer] = &[Buffer::Diffuse, Buffer::Specular, Buffer::Albedo, Buffer::Normal, Buffer::Depth];
 
 /// The spec of `buffer` in [`BUFFERS`].
 pub fn spec(buffer: Buffer) -> &'static BufferSpec {

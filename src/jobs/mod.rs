@@ -190,6 +190,7 @@ pub(crate) struct Success {
     pub timings: Timings,
     pub metrics: Option<JobMetrics>,
     pub sanitized: SanitizedCounts,
+    pub missing_variances: Vec<String>,
     pub pixels: u64,
     pub result: Vec<u8>,
     /// Milliseconds spent before the result file was written (the write time is added to
@@ -396,6 +397,7 @@ impl JobService {
             timings: None,
             metrics: None,
             sanitized: None,
+            missing_variances: Vec::new(),
             error: None,
             result_bytes: None,
         };
@@ -843,6 +845,7 @@ impl JobService {
         record.progress = s.progress;
         record.metrics = s.metrics;
         record.sanitized = Some(s.sanitized);
+        record.missing_variances = s.missing_variances;
         record.error = None;
         record.result_bytes = Some(s.result.len() as u64);
         record.finished_at_ms = Some(now_before);

@@ -266,6 +266,9 @@ pub struct JobRecord {
     pub timings: Option<Timings>,
     pub metrics: Option<JobMetrics>,
     pub sanitized: Option<SanitizedCounts>,
+    /// Variance buffers the frame lacked, taken as 0 (docs/frame-layout.md).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub missing_variances: Vec<String>,
     pub error: Option<JobError>,
     pub result_bytes: Option<u64>,
 }

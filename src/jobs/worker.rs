@@ -137,6 +137,9 @@ fn run(service: &JobService, engine: &mut Engine, claim: &Claim) -> Outcome {
     if frame.sanitized.total > 0 {
         tracing::warn!(samples = frame.sanitized.total, "non-finite samples replaced by 0");
     }
+    if !frame.missing_variances.is_empty() {
+        tracing::info!(buffers = ?frame.missing_variances, "variance buffers missing; taken as 0");
+    }
 
     let mut stop = Stop::No;
     let delay = settings.tile_delay;
@@ -215,6 +218,7 @@ fn run(service: &JobService, engine: &mut Engine, claim: &Claim) -> Outcome {
         timings,
         metrics,
         sanitized: SanitizedCounts { total: frame.sanitized.total, by_buffer: frame.sanitized.by_buffer.clone() },
+        missing_variances: frame.missing_variances.clone(),
         pixels: (out.width * out.height) as u64,
         result: encoded,
         started,

@@ -149,7 +149,7 @@ def test_hook_command_line_over_a_frame_range(daemon, tmp_path):
     d.mkdir()
     shutil.copy(FRAMES / "cornell-spp8.exr", d / "beauty.0001.exr")
     shutil.copy(FRAMES / "shadow-spp8.exr", d / "beauty.0002.exr")
-    without_channel(FRAMES / "caustic-spp8.exr", d / "beauty.0003.exr", "normalVariance.Z")
+    without_channel(FRAMES / "caustic-spp8.exr", d / "beauty.0003.exr", "depth.Z")
     cmd = [sys.executable, str(ROOT / "examples" / "farm" / "denoise_hook.py"), "--server", daemon.url,
            "--pattern", str(d / "beauty.####.exr")]
     ok = subprocess.run(cmd + ["--frames", "1-2"], capture_output=True, text=True,
@@ -160,7 +160,7 @@ def test_hook_command_line_over_a_frame_range(daemon, tmp_path):
     bad = subprocess.run(cmd + ["--frames", "3"], capture_output=True, text=True,
                          env={"MCDENOISE_TOKEN": TOKEN, "PATH": "/usr/bin:/bin"}, timeout=120)
     assert bad.returncode == 1
-    assert "normalVariance" in bad.stderr and "denoised 0 of 1 frames" in bad.stderr
+    assert "depth.Z" in bad.stderr and "denoised 0 of 1 frames" in bad.stderr
 
 
 def test_frame_pattern_expansion():

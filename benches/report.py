@@ -1,0 +1,123 @@
+"""Writes docs/results.md from the measurements under docs/results/: `make bench` (speed.json,
+oidn.json) and `make eval` (val/ and test/: results.md, quality.png, crops/). Each target
+reruns this script, so the page always shows the latest of both.
+
+    python benches/report.py [--results docs/results] [--out docs/results.md]
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+SPEED_CMD = "make bench"
+EVAL_CMD = "make eval"
+
+
+def speed_section(speed: dict, oidn: dict | None) -> list[str]:
+    m, g, e, d = speed["machine"], speed["gemm_ceiling"], speed["engine"], speed["daemon"]
+    st = e["engine_stages_s"]
+    total = e["engine_total_s"]
+    out = [
+        "## Speed",
+        "",
+        f"Machine: {m['cpu'] or 'unknown CPU'}, {m['threads']} threads, ONNX Runtime {m['ort_version']}. "
+        f"Produced by `{SPEED_CMD}` (benches/speed.rs, benches/oidn_speed.py); every ratio below compares "
+        "figures measured in the same run.",
+        "",
+        "### Ceilings",
+        "",
+        "| measure | GFLOP/s |",
+        "|---|---|",
+        f"| FP32 GEMM ({g['n']}³ MatMul through ONNX Runtime), {g['threads']} threads | {g['gflops']:.1f} |",
+        f"| FP32 GEMM, 1 thread | {g['gflops_1_thread']:.1f} |",
+        f"| ONNX Runtime alone, shipped `{e['variant']}` models on the {e['width']}×{e['height']} frame's tiles "
+        f"| {e['ort_alone_gflops']:.1f} ({100 * e['ort_alone_vs_gemm_ceiling']:.0f} % of GEMM) |",
+        "",
+        f"FLOPs are the models' own count (contract metadata `flops_per_pixel`) times the frame's pixels, "
+        f"{e['flops_per_frame'] / 1e9:.2f} GFLOP per frame; the halo each tile computes beyond its core "
+        "is work the count leaves out.",
+        "",
+        f"### Engine, {e['width']}×{e['height']}, tile {e['tile']}, {e['threads']} threads (median of {e['runs']})",
+        "",
+        "| stage | seconds | share |",
+        "|---|---|---|",
+    ]
+    for k in ("decode", "preprocess", "inference", "reconstruction", "encode"):
+        out.append(f"| {k} | {st[k]:.3f} | {100 * st[k] / total:.1f} % |")
+    out += [
+        f"| **total** | **{total:.3f}** | |",
+        "",
+        f"- ONNX Runtime alone on the same tiles: {e['ort_alone_s']:.3f} s; the engine reaches "
+        f"**{100 * e['engine_vs_ort_alone']:.0f} %** of its throughput.",
+        f"- Engine: {e['engine_gflops']:.1f} GFLOP/s, {100 * e['engine_vs_gemm_ceiling']:.0f} % of the GEMM ceiling.",
+        "",
+        f"### Daemon end to end, {d['width']}×{d['height']} frames, 1 worker × {d['threads_per_worker']} threads",
+        "",
+        "Each client uploads a frame over HTTP, polls until it is done and downloads the result; "
+        f"the engine alone does the same frame (decode, denoise, encode) in {d['engine_alone_s_per_frame']:.3f} s "
+        f"({d['engine_alone_frames_per_hour']:.0f} frames/h).",
+        "",
+        "| clients | jobs | frames/h | vs engine alone | latency p50 (s) | latency p99 (s) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in d["clients"]:
+        out.append(f"| {r['clients']} | {r['jobs']} | {r['frames_per_hour']:.0f} | {100 * r['vs_engine_alone']:.0f} % | "
+                   f"{r['latency_p50_s']:.2f} | {r['latency_p99_s']:.2f} |")
+    out += ["", "### Peak memory of `mcdenoise run`", "",
+            "| frame | peak RSS (MB) | frame buffers (MB) | beyond the frame (MB) | time (s) |", "|---|---|---|---|---|"]
+    for r in speed["memory"]:
+        out.append(f"| {r['frame']} ({r['width']}×{r['height']}) | {r['peak_rss_mb']:.0f} | {r['frame_buffers_mb']:.0f} | "
+                   f"{r['rss_beyond_frame_mb']:.0f} | {r['total_s']:.1f} |")
+    out += ["", "Frame buffers: every decoded input plane and the output planes at 4 bytes per sample, which any "
+            "denoiser holding the frame needs; what lies beyond them is the models, ONNX Runtime and the per-tile "
+            "working set, bounded by the tile size."]
+    if oidn:
+        out += ["", f"### Intel Open Image Denoise on the same {oidn['width']}×{oidn['height']} frame and cores",
+                "", "| denoiser | seconds | relative to ours |", "|---|---|---|",
+                f"| mcdenoise engine (total) | {total:.2f} | 1.00 |"]
+        for q, r in oidn["quality"].items():
+            out.append(f"| OIDN {oidn.get('pyoidn', '')} quality {q} | {r['seconds']:.2f} | {r['seconds'] / total:.2f} |")
+    return out
+
+
+def quality_section(results: Path) -> list[str]:
+    out = ["## Quality", "",
+           f"Produced by `{EVAL_CMD}` (training/mcdenoise_train/evaluate.py): every frame denoised by `mcdenoise run` "
+           "with the shipped models and by OIDN (pyoidn, HDR, albedo and normal, quality high); metrics computed by "
+           "the engine against the reference."]
+    for split, title in (("val", "Validation scenes (never trained on; they chose the checkpoints)"),
+                         ("test", "Test scenes (never seen in training or selection)")):
+        d = results / split
+        if not (d / "results.md").exists():
+            continue
+        out += ["", f"### {title}", "", (d / "results.md").read_text().replace("## ", "#### ").strip(), ""]
+        if (d / "quality.png").exists():
+            out += [f"![quality against sample count, {split}](results/{split}/quality.png)", ""]
+        crops = sorted((d / "crops").glob("*.png")) if (d / "crops").exists() else []
+        if crops:
+            out += ["Crops at each scene's lowest sample count (input, ours, OIDN, reference; clamped sRGB):", ""]
+            out += [f"![{c.stem}](results/{split}/crops/{c.name})" for c in crops]
+    return out
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--results", default="docs/results")
+    p.add_argument("--out", default="docs/results.md")
+    a = p.parse_args()
+    results = Path(a.results)
+    lines = ["# Results", "",
+             "Speed against the machine's limits and quality against Intel Open Image Denoise, regenerated by "
+             f"`{SPEED_CMD}` and `{EVAL_CMD}` (raw measurements in docs/results/). Do not edit by hand.", ""]
+    speed = results / "speed.json"
+    if speed.exists():
+        oidn = results / "oidn.json"
+        lines += speed_section(json.loads(speed.read_text()), json.loads(oidn.read_text()) if oidn.exists() else None)
+        lines.append("")
+    lines += quality_section(results)
+    Path(a.out).write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,201 @@
+//! Frames from renderers that do not write the canonical buffers, and frames without
+//! variances.
+//!
+//! Blender Cycles writes passes as `<view layer>.<pass>.<channel>` and no diffuse/specular
+//! split or variance. Its passes give the split exactly: diffuse = (Diffuse Direct +
+//! Diffuse Indirect) × Diffuse Color, specular = Combined − diffuse (glossy, transmission,
+//! emission, environment). [`recipes`] says, from the channel names alone, which canonical
+//! channels can be derived and how, so that the daemon can validate a header before
+//! decoding and [`derive`] can build the planes after.
+//!
+//! Variances a renderer does not write are taken as 0 (see `Frame::fill_missing_variances`).
+
+use std::collections::BTreeMap;
+
+use super::{NamedPlanes, Plane};
+
+/// How one canonical channel is computed from the file's channels.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Recipe {
+    /// The channel as it is.
+    Copy(String),
+    /// Depth where "no hit" is written as a huge distance (Cycles: 1e10): values at or above
+    /// [`NO_HIT_DEPTH`] become 0, the canonical "no hit".
+    Depth(String),
+    /// `(sum of terms) × factor`.
+    Product { terms: Vec<String>, factor: String },
+    /// `total − (sum of terms) × factor`.
+    Remainder { total: String, terms: Vec<String>, factor: String },
+    /// A channel of zeros.
+    Zero,
+}
+
+/// Depths at or above this mean "no hit".
+pub const NO_HIT_DEPTH: f32 = 1e9;
+
+/// Cycles pass names, current and before Blender 5 (`DiffDir` ...).
+const DIFFUSE_DIRECT: &[&str] = &["Diffuse Direct", "DiffDir"];
+const DIFFUSE_INDIRECT: &[&str] = &["Diffuse Indirect", "DiffInd"];
+const DIFFUSE_COLOR: &[&str] = &["Diffuse Color", "DiffCol"];
+
+/// The channels of each pass: pass name → channel letter → full channel name. A name
+/// `a.b.c` is pass `b`, channel `c` (view layer `a`, which may itself contain dots); with
+/// several view layers the first in name order wins.
+fn passes<'a>(names: &[&'a str]) -> BTreeMap<&'a str, BTreeMap<&'a str, &'a str>> {
+    let mut sorted: Vec<&str> = names.to_vec();
+    sorted.sort();
+    let mut out: BTreeMap<&str, BTreeMap<&str, &str>> = BTreeMap::new();
+    for name in sorted {
+        let mut it = name.rsplitn(3, '.');
+        let (Some(chan), Some(pass), Some(_layer)) = (it.next(), it.next(), it.next()) else { continue };
+        out.entry(pass).or_default().entry(chan).or_insert(name);
+    }
+    out
+}
+
+/// The canonical channels that can be derived from `names` and how, for buffers the file
+/// does not hold under a canonical or aliased name. Empty for files in the canonical layout.
+pub fn recipes(names: &[&str]) -> Vec<(String, Recipe)> {
+    let resolved = super::layout::resolve(names);
+    let has = |b: super::Buffer| resolved[b as usize].is_some();
+    let passes = passes(names);
+    let pass = |candidates: &[&str], chans: &[&str]| -> Option<Vec<String>> {
+        candidates.iter().find_map(|p| {
+            let chs = passes.get(p)?;
+            chans.iter().map(|c| chs.get(c).map(|n| n.to_string())).collect()
+        })
+    };
+    let rgb = ["R", "G", "B"];
+    let mut out = Vec::new();
+    let mut add = |prefix: &str, suffixes: &[&str], recipes: Vec<Recipe>| {
+        for (s, r) in suffixes.iter().zip(recipes) {
+            out.push((format!("{prefix}.{s}"), r));
+        }
+    };
+
+    if !has(super::Buffer::Diffuse) && !has(super::Buffer::Specular) {
+        let combined = pass(&["Combined"], &rgb);
+        let split = (pass(DIFFUSE_DIRECT, &rgb), pass(DIFFUSE_INDIRECT, &rgb), pass(DIFFUSE_COLOR, &rgb));
+        match (combined, split) {
+            (Some(total), (Some(dir), Some(ind), Some(col))) => {
+                let terms = |c: usize| vec![dir[c].clone(), ind[c].clone()];
+                add(
+                    "diffuse",
+                    &rgb,
+                    (0..3).map(|c| Recipe::Product { terms: terms(c), factor: col[c].clone() }).collect(),
+                );
+                add(
+                    "specular",
+                    &rgb,
+                    (0..3)
+                        .map(|c| Recipe::Remainder { total: total[c].clone(), terms: terms(c), factor: col[c].clone() })
+                        .collect(),
+                );
+            }
+            // Without diffuse passes all light is treated as diffuse (divided by the albedo).
+            (Some(total), _) => {
+                add("diffuse", &rgb, total.iter().map(|n| Recipe::Copy(n.clone())).collect());
+                add("specular", &rgb, vec![Recipe::Zero, Recipe::Zero, Recipe::Zero]);
+            }
+            _ => {}
+        }
+    }
+    if !has(super::Buffer::Albedo) {
+        if let Some(a) = pass(&["Denoising Albedo", "Albedo"], &rgb) {
+            add("albedo", &rgb, a.into_iter().map(Recipe::Copy).collect());
+        }
+    }
+    if !has(super::Buffer::Normal) {
+        if let Some(n) = pass(&["Denoising Normal", "Normal"], &["X", "Y", "Z"]) {
+            add("normal", &rgb, n.into_iter().map(Recipe::Copy).collect());
+        }
+    }
+    if !has(super::Buffer::Depth) {
+        if let Some(d) = pass(&["Denoising Depth", "Depth"], &["Z"]) {
+            add("depth", &["Z"], d.into_iter().map(Recipe::Depth).collect());
+        }
+    }
+    out
+}
+
+/// `names` plus the canonical names [`recipes`] can derive.
+pub fn with_derived(names: &[&str]) -> Vec<String> {
+    let mut all: Vec<String> = names.iter().map(|s| s.to_string()).collect();
+    all.extend(recipes(names).into_iter().map(|(n, _)| n));
+    all
+}
+
+/// Appends the planes [`recipes`] derives from `planes`.
+pub fn derive(planes: &mut NamedPlanes, len: usize) {
+    let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
+    let todo = recipes(&names);
+    if todo.is_empty() {
+        return;
+    }
+    let index: BTreeMap<String, usize> = planes.iter().enumerate().map(|(i, (n, _))| (n.clone(), i)).collect();
+    let get = |n: &String| -> &Plane { &planes[index[n]].1 };
+    let sum = |terms: &[String]| -> Plane {
+        let mut s = vec![0f32; len];
+        for t in terms {
+            for (a, b) in s.iter_mut().zip(get(t)) {
+                *a += b;
+            }
+        }
+        s
+    };
+    let derived: Vec<(String, Plane)> = todo
+        .iter()
+        .map(|(name, recipe)| {
+            let plane = match recipe {
+                Recipe::Copy(src) => get(src).clone(),
+                Recipe::Depth(src) => get(src).iter().map(|&z| if z >= NO_HIT_DEPTH { 0.0 } else { z }).collect(),
+                Recipe::Product { terms, factor } => sum(terms).iter().zip(get(factor)).map(|(s, f)| s * f).collect(),
+                Recipe::Remainder { total, terms, factor } => {
+                    let d = sum(terms);
+                    get(total).iter().zip(&d).zip(get(factor)).map(|((t, s), f)| t - s * f).collect()
+                }
+                Recipe::Zero => vec![0f32; len],
+            };
+            (name.clone(), plane)
+        })
+        .collect();
+    planes.extend(derived);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cycles_names_give_the_exact_split() {
+        let names = [
+            "ViewLayer.Combined.R",
+            "ViewLayer.Combined.G",
+            "ViewLayer.Combined.B",
+            "ViewLayer.Combined.A",
+            "ViewLayer.Diffuse Direct.R",
+            "ViewLayer.Diffuse Direct.G",
+            "ViewLayer.Diffuse Direct.B",
+            "ViewLayer.Diffuse Indirect.R",
+            "ViewLayer.Diffuse Indirect.G",
+            "ViewLayer.Diffuse Indirect.B",
+            "ViewLayer.Diffuse Color.R",
+            "ViewLayer.Diffuse Color.G",
+            "ViewLayer.Diffuse Color.B",
+        ];
+        let mut planes: NamedPlanes =
+            names.iter().enumerate().map(|(i, n)| (n.to_string(), vec![i as f32 + 1.0; 2])).collect();
+        derive(&mut planes, 2);
+        let get = |n: &str| planes.iter().find(|(k, _)| k == n).map(|(_, p)| p[0]).unwrap();
+        // diffuse.R = (DiffDir.R + DiffInd.R) × DiffCol.R = (5 + 8) × 11
+        assert_eq!(get("diffuse.R"), 13.0 * 11.0);
+        // specular.R = Combined.R − diffuse.R
+        assert_eq!(get("specular.R"), 1.0 - 143.0);
+        assert_eq!(get("diffuse.B"), (7.0 + 10.0) * 13.0);
+    }
+
+    #[test]
+    fn canonical_files_derive_nothing() {
+        assert!(recipes(&["diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B"]).is_empty());
+    }
+}
