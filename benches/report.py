@@ -13,6 +13,20 @@ SPEED_CMD = "make bench"
 EVAL_CMD = "make eval"
 
 
+def conditions(machine: dict) -> list[str]:
+    """What else ran on the machine: the 1-minute load average before and after the run, and
+    a note recorded with the measurements (`conditions` in speed.json) when there is one."""
+    out = []
+    if "loadavg_start" in machine:
+        out.append(f"Load average (1 min) {machine['loadavg_start']:.1f} before and {machine['loadavg_end']:.1f} after "
+                   f"the run, on {machine['threads']} threads.")
+    if machine.get("conditions"):
+        out.append(machine["conditions"])
+    if out:
+        out.append("")
+    return out
+
+
 def speed_section(speed: dict, oidn: dict | None) -> list[str]:
     m, g, e, d = speed["machine"], speed["gemm_ceiling"], speed["engine"], speed["daemon"]
     st = e["engine_stages_s"]
@@ -24,6 +38,7 @@ def speed_section(speed: dict, oidn: dict | None) -> list[str]:
         f"Produced by `{SPEED_CMD}` (benches/speed.rs, benches/oidn_speed.py); every ratio below compares "
         "figures measured in the same run.",
         "",
+        *conditions(m),
         "### Ceilings",
         "",
         "| measure | GFLOP/s |",
@@ -50,6 +65,9 @@ def speed_section(speed: dict, oidn: dict | None) -> list[str]:
         f"- ONNX Runtime alone on the same tiles: {e['ort_alone_s']:.3f} s; the engine reaches "
         f"**{100 * e['engine_vs_ort_alone']:.0f} %** of its throughput.",
         f"- Engine: {e['engine_gflops']:.1f} GFLOP/s, {100 * e['engine_vs_gemm_ceiling']:.0f} % of the GEMM ceiling.",
+        "- Where the rest goes: " + ", ".join(
+            f"{k} {st[k]:.2f} s" for k in sorted(("reconstruction", "encode", "preprocess", "decode"), key=lambda k: -st[k]))
+        + " run on the same cores between inferences (not overlapped with them).",
         "",
         f"### Daemon end to end, {d['width']}×{d['height']} frames, 1 worker × {d['threads_per_worker']} threads",
         "",

@@ -354,8 +354,17 @@ fn cpu_model() -> String {
         .unwrap_or_default()
 }
 
+/// The 1-minute load average, to tell from the report whether other work shared the cores.
+fn loadavg() -> f64 {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().and_then(|v| v.parse().ok()))
+        .unwrap_or(f64::NAN)
+}
+
 fn main() -> Result<()> {
     let a = parse_args()?;
+    let load_start = loadavg();
     let dir = a.work.clone();
     std::fs::create_dir_all(&dir)?;
     if let Some(parent) = a.out.parent() {
@@ -376,7 +385,10 @@ fn main() -> Result<()> {
     let memory_json = memory_section(&a, &dir)?;
 
     let report = json!({
-        "machine": { "cpu": cpu_model(), "threads": a.threads, "ort_version": runtime::ORT_VERSION },
+        "machine": {
+            "cpu": cpu_model(), "threads": a.threads, "ort_version": runtime::ORT_VERSION,
+            "loadavg_start": load_start, "loadavg_end": loadavg(),
+        },
         "models": a.models,
         "gemm_ceiling": { "n": n, "gflops": gemm, "gflops_1_thread": gemm1, "threads": a.threads },
         "engine": engine_json,
