@@ -171,15 +171,7 @@ impl Engine {
             Some(v) => v,
             None => self.select(frame)?,
         };
-        if variant.uses_covariance() && !frame.has(Buffer::Covariance) {
-            return Err(EngineError::NoModel("the `full` model needs a `covariance` channel".into()));
-        }
-        let pair = self
-            .pairs
-            .iter_mut()
-            .find(|p| p.variant == variant)
-            .ok_or_else(|| EngineError::NoModel(format!("no `{}` model is loaded", variant.name())))?;
-        let halo = pair.receptive_radius().max(contract::KERNEL_RADIUS);
+        let (pair, halo) = pair_for(&mut self.pairs, variant, frame)?;
         let stats = FrameStats::of(frame);
         let tiles = tile_grid(frame.width, frame.height, self.tile);
         let (w, h) = (frame.width, frame.height);
@@ -229,19 +221,12 @@ impl Engine {
         timings.reconstruction += t.elapsed();
         Ok(Denoised { width: w, height: h, variant, color, diffuse, specular, tiles: tiles.len(), timings })
     }
-}
 
-impl Engine {
     /// Time spent in ONNX Runtime alone on the regions [`Engine::denoise`] would run for
     /// `frame` (preprocessing done beforehand and not counted, logits not consumed): the
     /// inference floor the speed benchmark compares the engine with.
     pub fn inference_only(&mut self, frame: &Frame, variant: Variant) -> Result<Duration, EngineError> {
-        let pair = self
-            .pairs
-            .iter_mut()
-            .find(|p| p.variant == variant)
-            .ok_or_else(|| EngineError::NoModel(format!("no `{}` model is loaded", variant.name())))?;
-        let halo = pair.receptive_radius().max(contract::KERNEL_RADIUS);
+        let (pair, halo) = pair_for(&mut self.pairs, variant, frame)?;
         let stats = FrameStats::of(frame);
         let mut total = Duration::ZERO;
         for core in tile_grid(frame.width, frame.height, self.tile) {
@@ -259,6 +244,24 @@ impl Engine {
         }
         Ok(total)
     }
+}
+
+/// The loaded pair of `variant`, checked against the frame's channels, and the halo its
+/// tiles need: the networks' receptive radius, at least the kernel radius.
+fn pair_for<'a>(
+    pairs: &'a mut [ModelPair],
+    variant: Variant,
+    frame: &Frame,
+) -> Result<(&'a mut ModelPair, usize), EngineError> {
+    if variant.uses_covariance() && !frame.has(Buffer::Covariance) {
+        return Err(EngineError::NoModel("the `full` model needs a `covariance` channel".into()));
+    }
+    let pair = pairs
+        .iter_mut()
+        .find(|p| p.variant == variant)
+        .ok_or_else(|| EngineError::NoModel(format!("no `{}` model is loaded", variant.name())))?;
+    let halo = pair.receptive_radius().max(contract::KERNEL_RADIUS);
+    Ok((pair, halo))
 }
 
 /// Cores of side `tile` covering a `w`×`h` frame, row-major; one core for `tile == 0`.

@@ -58,6 +58,19 @@ impl Buffer {
         Buffer::Color,
     ];
 
+    /// The variance buffer of a color or feature buffer.
+    pub fn variance(self) -> Option<Buffer> {
+        match self {
+            Buffer::Diffuse => Some(Buffer::DiffuseVariance),
+            Buffer::Specular => Some(Buffer::SpecularVariance),
+            Buffer::Albedo => Some(Buffer::AlbedoVariance),
+            Buffer::Normal => Some(Buffer::NormalVariance),
+            Buffer::Depth => Some(Buffer::DepthVariance),
+            Buffer::Covariance => Some(Buffer::CovarianceVariance),
+            _ => None,
+        }
+    }
+
     /// The buffer's name in messages and reports.
     pub fn name(self) -> &'static str {
         match self {

@@ -141,14 +141,7 @@ impl Frame {
     /// cornell and caustic (2–6.5× over 3×3), since it counts edges and texture as noise.
     pub fn fill_missing_variances(&mut self) {
         let n = self.pixels();
-        for (base, var) in [
-            (Buffer::Diffuse, Buffer::DiffuseVariance),
-            (Buffer::Specular, Buffer::SpecularVariance),
-            (Buffer::Albedo, Buffer::AlbedoVariance),
-            (Buffer::Normal, Buffer::NormalVariance),
-            (Buffer::Depth, Buffer::DepthVariance),
-            (Buffer::Covariance, Buffer::CovarianceVariance),
-        ] {
+        for (base, var) in Buffer::ALL.into_iter().filter_map(|b| b.variance().map(|v| (b, v))) {
             if self.has(var) || !self.has(base) {
                 continue;
             }

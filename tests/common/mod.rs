@@ -4,8 +4,8 @@
 use std::path::PathBuf;
 
 use exr::prelude::*;
-use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig};
-use mcdenoise::frame::{Buffer, Frame, NamedPlanes};
+use mcdenoise::engine::{synthetic_planes, Engine, EngineConfig};
+use mcdenoise::frame::{Frame, NamedPlanes};
 
 /// A part of a multi-part file: name, size, channels.
 pub type Part<'a> = (&'a str, (usize, usize), NamedPlanes);
@@ -23,32 +23,7 @@ pub fn engine(tile: usize) -> Engine {
 
 /// The canonical channels of a synthetic frame, as named planes.
 pub fn named_planes(w: usize, h: usize, with_covariance: bool) -> Vec<(String, Vec<f32>)> {
-    let frame = synthetic_frame(w, h, with_covariance);
-    let mut out = Vec::new();
-    let rgb = |out: &mut Vec<(String, Vec<f32>)>, b: Buffer, base: &str| {
-        for (c, ch) in ["R", "G", "B"].into_iter().enumerate() {
-            out.push((format!("{base}.{ch}"), frame.plane(b, c).to_vec()));
-        }
-    };
-    rgb(&mut out, Buffer::Diffuse, "diffuse");
-    rgb(&mut out, Buffer::Specular, "specular");
-    rgb(&mut out, Buffer::Albedo, "albedo");
-    rgb(&mut out, Buffer::Normal, "normal");
-    out.push(("depth.Z".into(), frame.plane(Buffer::Depth, 0).to_vec()));
-    for (b, name) in [
-        (Buffer::DiffuseVariance, "diffuseVariance"),
-        (Buffer::SpecularVariance, "specularVariance"),
-        (Buffer::AlbedoVariance, "albedoVariance"),
-        (Buffer::NormalVariance, "normalVariance"),
-        (Buffer::DepthVariance, "depthVariance"),
-    ] {
-        out.push((format!("{name}.Z"), frame.plane(b, 0).to_vec()));
-    }
-    if with_covariance {
-        out.push(("covariance".into(), frame.plane(Buffer::Covariance, 0).to_vec()));
-        out.push(("covarianceVariance.Z".into(), frame.plane(Buffer::CovarianceVariance, 0).to_vec()));
-    }
-    out
+    synthetic_planes(w, h, with_covariance)
 }
 
 /// Sample type of written channels.
