@@ -8,10 +8,11 @@ examples/farm/denoise_hook.py on a background thread, so Blender renders the nex
 meanwhile; `render_complete` waits for the outstanding frames and prints a summary. The
 denoised frame is written next to the rendered one (`0001.exr` -> `0001.denoised.exr`).
 
-The output must be an OpenEXR in the layout of docs/frame-layout.md: diffuse, specular,
-albedo, normal and depth with their variances. Cycles' own passes have other names and no
-variances, so a stock Cycles render is refused (422, missing channels named in Blender's
-console); the scene has to write that layout, e.g. from a compositor File Output node.
+The output must be a multilayer OpenEXR that the daemon can read (docs/frame-layout.md):
+either the canonical layout, or Cycles' own passes with the Diffuse Direct/Indirect/Color
+passes and the denoising data passes enabled in the view layer (the daemon derives the
+diffuse/specular split from them and takes the missing variances as 0). A render without
+them is refused (422, missing channels named in Blender's console).
 """
 
 import os

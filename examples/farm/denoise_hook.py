@@ -3,7 +3,8 @@
     shots/sh010/beauty.0001.exr  ->  shots/sh010/beauty.0001.denoised.exr
 
 The frame must be in the layout of docs/frame-layout.md (diffuse, specular, albedo,
-normal, depth and their variances; covariance optional). A frame that is not is refused
+normal, depth, or the Blender Cycles passes they derive from; variances and covariance
+optional). A frame that is not is refused
 by the daemon with the missing channels named; the hook reports that and fails the frame.
 
 As a per-frame farm command (exit status 0 when every frame was denoised, 1 otherwise, so
