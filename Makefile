@@ -16,8 +16,10 @@ build: setup
 ## Runs every test: Rust unit and integration tests, then the Python tests (training,
 ## export, data generation, parity with the Rust engine), then tests/ops (Dockerfile,
 ## Kubernetes manifests, dashboard, Python client and farm hook against a real daemon).
+## The speed benchmark runs once on tiny frames so that it keeps working (figures: make bench).
 test: build
 	cargo test --release --locked
+	cargo bench --locked --bench speed -- --quick --runs 1 --out target/bench/quick.json
 	cd training && $(PY) -m pytest -q tests
 	$(PY) -m pytest -q tests/ops
 

@@ -82,7 +82,6 @@ pub(super) fn read_planes(
         .all_channels()
         .all_layers()
         .all_attributes()
-        .non_parallel()
         .from_buffered(Cursor::new(bytes))
         .map_err(map_exr_error)?;
 
@@ -148,6 +147,6 @@ pub fn write_exr(width: usize, height: usize, layers: &[OutputLayer<'_>]) -> exr
     let image =
         Image::from_layer(Layer::new((width, height), LayerAttributes::default(), Encoding::SMALL_LOSSLESS, channels));
     let mut out = Cursor::new(Vec::new());
-    image.write().non_parallel().to_buffered(&mut out)?;
+    image.write().to_buffered(&mut out)?;
     Ok(out.into_inner())
 }
