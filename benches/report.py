@@ -80,12 +80,18 @@ def speed_section(speed: dict, oidn: dict | None) -> list[str]:
         f"the engine alone does the same frame (decode, denoise, encode) in {d['engine_alone_s_per_frame']:.3f} s "
         f"({d['engine_alone_frames_per_hour']:.0f} frames/h).",
         "",
-        "| clients | jobs | frames/h | vs engine alone | latency p50 (s) | latency p99 (s) |",
-        "|---|---|---|---|---|---|",
+        "| clients | jobs | frames/h | vs engine alone | latency p50 (s) | latency p99 (s) | wall per frame (s) "
+        "| worker per frame (s) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in d["clients"]:
         out.append(f"| {r['clients']} | {r['jobs']} | {r['frames_per_hour']:.0f} | {100 * r['vs_engine_alone']:.0f} % | "
-                   f"{r['latency_p50_s']:.2f} | {r['latency_p99_s']:.2f} |")
+                   f"{r['latency_p50_s']:.2f} | {r['latency_p99_s']:.2f} | {r.get('wall_per_frame_s', float('nan')):.3f} "
+                   f"| {r.get('worker_per_frame_s', float('nan')):.3f} |")
+    out += ["", "Worker per frame: the job's own timings (read, decode, denoise, encode, durable write of the "
+            f"result); the engine alone takes {d['engine_alone_s_per_frame']:.3f} s for decode, denoise and encode. "
+            "Wall minus worker time is time the worker had no frame (one client uploads only after its previous "
+            "result) or lost to HTTP work on the same cores."]
     out += ["", "### Peak memory of `mcdenoise run`", "",
             "| frame | peak RSS (MB) | frame buffers (MB) | beyond the frame (MB) | time (s) |", "|---|---|---|---|---|"]
     for r in speed["memory"]:

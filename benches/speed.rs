@@ -212,8 +212,10 @@ fn engine_section(a: &Args, e: &mut Engine, exr: &[u8], w: usize, h: usize, gemm
 }
 
 /// Submits `jobs` frames from `clients` concurrent clients; each client uploads, waits for
-/// the job and downloads the result. Returns (wall seconds, per-job latencies).
-async fn daemon_load(http: &HttpClient, exr: Bytes, clients: usize, jobs: usize) -> Result<(f64, Vec<f64>)> {
+/// the job and downloads the result. Returns the wall seconds and, per job, the latency and
+/// the worker's own time on it (the job's `timings`: decode, denoise, encode and the durable
+/// write of the result).
+async fn daemon_load(http: &HttpClient, exr: Bytes, clients: usize, jobs: usize) -> Result<(f64, Vec<(f64, f64)>)> {
     let next = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
     let t0 = Instant::now();
     let mut tasks = Vec::new();
@@ -229,15 +231,15 @@ async fn daemon_load(http: &HttpClient, exr: Bytes, clients: usize, jobs: usize)
                     bail!("submit: {status} {job}");
                 }
                 let id = job["id"].as_str().context("job id")?.to_string();
-                loop {
+                let worker_s = loop {
                     let (_, j) =
                         http.json(Method::GET, &format!("/v1/jobs/{id}"), &[], body_bytes(Bytes::new())).await?;
                     match j["state"].as_str() {
-                        Some("succeeded") => break,
+                        Some("succeeded") => break j["timings_ms"]["total"].as_f64().context("job timings")? / 1e3,
                         Some("failed") | Some("cancelled") | Some("expired") => bail!("job {id}: {j}"),
                         _ => tokio::time::sleep(Duration::from_millis(20)).await,
                     }
-                }
+                };
                 let resp = http.get(&format!("/v1/jobs/{id}/result")).await?;
                 if resp.status() != StatusCode::OK {
                     bail!("result: {:?}", read_json(resp).await?);
@@ -245,7 +247,7 @@ async fn daemon_load(http: &HttpClient, exr: Bytes, clients: usize, jobs: usize)
                 use http_body_util::BodyExt;
                 let body = resp.into_body().collect().await?.to_bytes();
                 std::hint::black_box(body);
-                lat.push(t.elapsed().as_secs_f64());
+                lat.push((t.elapsed().as_secs_f64(), worker_s));
             }
             Ok(lat)
         }));
@@ -301,13 +303,19 @@ fn daemon_section(a: &Args, e: &mut Engine) -> Result<Value> {
         }
         let mut rows = Vec::new();
         for clients in [1usize, 2, 8] {
-            let (wall, lat) = daemon_load(&http, exr.clone(), clients, jobs).await?;
+            let (wall, per_job) = daemon_load(&http, exr.clone(), clients, jobs).await?;
             let fph = 3600.0 * jobs as f64 / wall;
+            let lat: Vec<f64> = per_job.iter().map(|j| j.0).collect();
+            let worker_s = per_job.iter().map(|j| j.1).sum::<f64>() / jobs as f64;
             eprintln!("daemon {clients} clients: {fph:.0} frames/h (engine alone {engine_fph:.0})");
             rows.push(json!({
                 "clients": clients, "jobs": jobs, "wall_s": wall, "frames_per_hour": fph,
                 "vs_engine_alone": fph / engine_fph,
                 "latency_p50_s": percentile(lat.clone(), 0.5), "latency_p99_s": percentile(lat, 0.99),
+                // Where a frame's wall time goes: the worker's own time on it, and the rest
+                // (the worker waiting for the next upload, HTTP work competing for the cores).
+                "wall_per_frame_s": wall / jobs as f64,
+                "worker_per_frame_s": worker_s,
             }));
         }
         server.shutdown();
