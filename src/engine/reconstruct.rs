@@ -91,6 +91,7 @@ impl MulAdd for Unfused {
 /// Kernel taps handled per update of the accumulators: a kernel row's 21 taps in 7 groups of
 /// 3, so that the row accumulators are read and written once per group instead of per tap.
 const GROUP: usize = 3;
+const _: () = assert!(KERNEL_SIZE % GROUP == 0, "a group must not straddle two kernel rows");
 
 /// Output row `row` of `core`, in one pass over the logits, tap-major so that each tap's
 /// logits and color row are read contiguously. The softmax runs online, one kernel row at a
