@@ -104,6 +104,15 @@ pub struct ServeArgs {
     #[arg(long, env = "MCDENOISE_MAX_PIXELS", default_value_t = Limits::default().max_pixels, help_heading = "Queue and limits")]
     pub max_pixels: u64,
 
+    /// Uploads one client may have in flight at once (a client is a bearer token, or an
+    /// address when authentication is off).
+    #[arg(long, env = "MCDENOISE_MAX_UPLOADS_PER_CLIENT", default_value_t = 8, help_heading = "Queue and limits")]
+    pub max_uploads_per_client: usize,
+    /// Unfinished jobs (uploading, queued or running) one client may have (default: no
+    /// limit beyond the queue's).
+    #[arg(long, env = "MCDENOISE_MAX_JOBS_PER_CLIENT", help_heading = "Queue and limits")]
+    pub max_jobs_per_client: Option<usize>,
+
     // --- Security ----------------------------------------------------------------------
     /// Bearer tokens accepted on every endpoint except /livez, /readyz and gRPC health
     /// (comma-separated in the environment). None: no authentication.
@@ -115,6 +124,13 @@ pub struct ServeArgs {
         help_heading = "Security"
     )]
     pub auth_tokens: Vec<Secret>,
+    /// PEM certificate chain: with `--tls-key`, both listeners speak TLS only (HTTPS and
+    /// gRPC over TLS).
+    #[arg(long, env = "MCDENOISE_TLS_CERT", requires = "tls_key", help_heading = "Security")]
+    pub tls_cert: Option<PathBuf>,
+    /// PEM private key of `--tls-cert`.
+    #[arg(long, env = "MCDENOISE_TLS_KEY", requires = "tls_cert", help_heading = "Security")]
+    pub tls_key: Option<PathBuf>,
 
     // --- Operations --------------------------------------------------------------------
     /// Log format.
@@ -151,6 +167,10 @@ impl ServeArgs {
         self.workers.unwrap_or_else(|| (cores() / self.threads_per_worker()).max(1)).max(1)
     }
 
+    pub fn max_jobs_per_client(&self) -> usize {
+        self.max_jobs_per_client.unwrap_or(usize::MAX)
+    }
+
     pub fn limits(&self) -> Limits {
         Limits { max_pixels: self.max_pixels }
     }
@@ -162,6 +182,9 @@ impl ServeArgs {
         }
         if self.workers == Some(0) {
             bail!("--workers must be at least 1");
+        }
+        if self.max_uploads_per_client == 0 || self.max_jobs_per_client == Some(0) {
+            bail!("--max-uploads-per-client and --max-jobs-per-client must be at least 1");
         }
         if self.janitor_interval.is_zero() {
             bail!("--janitor-interval must be positive");
@@ -184,6 +207,9 @@ impl ServeArgs {
             "result_ttl": humantime::format_duration(self.result_ttl).to_string(),
             "max_body_bytes": self.max_body_bytes,
             "max_pixels": self.max_pixels,
+            "max_uploads_per_client": self.max_uploads_per_client,
+            "max_jobs_per_client": self.max_jobs_per_client,
+            "tls": self.tls_cert.is_some(),
             "auth": if self.auth_tokens.is_empty() { "off".to_string() } else { format!("{} token(s)", self.auth_tokens.len()) },
             "log_format": self.log_format,
             "shutdown_timeout": humantime::format_duration(self.shutdown_timeout).to_string(),

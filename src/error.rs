@@ -14,6 +14,7 @@
 //! | `Conflict` | 409 | FAILED_PRECONDITION |
 //! | `InProgress` | 409 | ABORTED |
 //! | `QueueFull` | 429 + `Retry-After` | RESOURCE_EXHAUSTED + `retry-after` |
+//! | `ClientLimit` | 429 + `Retry-After` | RESOURCE_EXHAUSTED + `retry-after` |
 //! | `Unavailable` | 503 | UNAVAILABLE |
 //! | `Internal` | 500 | INTERNAL |
 
@@ -45,6 +46,10 @@ pub enum Error {
     /// The queue is at capacity; retry after `retry_after_s` seconds.
     #[error("the queue is full ({capacity} jobs); retry in {retry_after_s} s")]
     QueueFull { capacity: usize, retry_after_s: u64 },
+    /// This client has reached its own share (concurrent uploads or unfinished jobs);
+    /// retry after `retry_after_s` seconds.
+    #[error("{message}")]
+    ClientLimit { message: String, retry_after_s: u64 },
     /// Not ready (models loading) or draining for shutdown.
     #[error("{0}")]
     Unavailable(String),
@@ -66,6 +71,7 @@ impl Error {
             Error::Conflict(_) => "conflict",
             Error::InProgress(_) => "in_progress",
             Error::QueueFull { .. } => "queue_full",
+            Error::ClientLimit { .. } => "client_limit",
             Error::Unavailable(_) => "unavailable",
             Error::Internal(_) => "internal",
         }

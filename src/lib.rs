@@ -14,10 +14,12 @@
 //!   workers that own engines, progress events), [`http`] and [`grpc`] (the two
 //!   transports over one core), [`server`] (startup and graceful shutdown), [`telemetry`]
 //!   (logs and Prometheus metrics), [`error`] (one error type, two mappings), [`client`]
-//!   (`mcdenoise submit`).
+//!   (`mcdenoise submit`), [`auth`] (bearer tokens, client identity), [`tls`] (rustls
+//!   for both listeners).
 //!
 //! `docs/frame-layout.md` and `docs/model-contract.md` describe the formats.
 
+pub mod auth;
 pub mod cli;
 pub mod client;
 pub mod config;
@@ -30,3 +32,4 @@ pub mod jobs;
 pub mod metrics;
 pub mod server;
 pub mod telemetry;
+pub mod tls;

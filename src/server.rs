@@ -62,16 +62,24 @@ impl Server {
 
         let trigger = CancellationToken::new();
         let stop = CancellationToken::new();
-        let tokens = Arc::new(args.auth_tokens.clone());
+        let tokens = Arc::new(crate::auth::Tokens::new(&args.auth_tokens));
+        let tls = crate::tls::TlsFiles::from_options(args.tls_cert.as_deref(), args.tls_key.as_deref())?;
         let state = crate::http::AppState { service: service.clone(), tokens: tokens.clone(), shutdown: stop.clone() };
-        let http_task = tokio::spawn(
-            axum::serve(http, crate::http::router(state))
-                .with_graceful_shutdown(stop.clone().cancelled_owned())
-                .into_future(),
-        );
-        let grpc_task = tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, stop.clone()));
+        let app = crate::http::router(state).into_make_service_with_connect_info::<crate::http::Peer>();
+        let http_task = match &tls {
+            None => tokio::spawn(
+                axum::serve(http, app).with_graceful_shutdown(stop.clone().cancelled_owned()).into_future(),
+            ),
+            Some(files) => {
+                let listener = crate::tls::TlsListener::new(http, files.http_config()?)?;
+                tokio::spawn(
+                    axum::serve(listener, app).with_graceful_shutdown(stop.clone().cancelled_owned()).into_future(),
+                )
+            }
+        };
+        let grpc_task = tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, tls.clone(), stop.clone()));
         let janitor = tokio::spawn(janitor(service.clone(), args.janitor_interval, stop.clone()));
-        tracing::info!(http = %http_addr, grpc = %grpc_addr, "listening");
+        tracing::info!(http = %http_addr, grpc = %grpc_addr, tls = tls.is_some(), "listening");
 
         let task = tokio::spawn(run(
             service.clone(),

@@ -51,7 +51,8 @@ pub const STAGES: [&str; 7] = ["queue", "decode", "preprocess", "inference", "re
 /// Terminal outcomes (`mcdenoise_jobs_finished_total{outcome}`).
 pub const OUTCOMES: [&str; 3] = ["succeeded", "failed", "cancelled"];
 /// Why a submission was refused (`mcdenoise_jobs_rejected_total{reason}`).
-pub const REJECTIONS: [&str; 6] = ["queue_full", "invalid", "too_large", "unavailable", "unauthenticated", "other"];
+pub const REJECTIONS: [&str; 7] =
+    ["queue_full", "client_limit", "invalid", "too_large", "unavailable", "unauthenticated", "other"];
 pub const TRANSPORTS: [&str; 2] = ["http", "grpc"];
 
 /// The daemon's Prometheus metrics.

@@ -5,8 +5,7 @@
 mod common;
 mod daemon_common;
 
-use std::io::BufRead;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use hyper::StatusCode;
@@ -100,38 +99,6 @@ async fn a_restart_keeps_finished_results_and_runs_queued_and_interrupted_jobs()
     d.stop().await;
 }
 
-/// The binary, started as `mcdenoise serve` with JSON logs; its addresses read from the
-/// "listening" log line.
-struct Process {
-    child: Child,
-    http: String,
-    grpc: String,
-}
-
-fn spawn_daemon(data_dir: &std::path::Path, extra: &[&str]) -> Process {
-    let mut argv = args(data_dir, extra);
-    argv.extend(["--log-format".into(), "json".into(), "--log".into(), "info".into()]);
-    let mut child = Command::new(env!("CARGO_BIN_EXE_mcdenoise"))
-        .args(&argv)
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("the binary starts");
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Ok(v) = serde_json::from_str::<Value>(&line) {
-                if v["message"] == "listening" {
-                    let _ = tx.send((v["http"].as_str().unwrap().to_string(), v["grpc"].as_str().unwrap().to_string()));
-                }
-            }
-        }
-    });
-    let (http, grpc) = rx.recv_timeout(Duration::from_secs(30)).expect("the daemon logs its addresses");
-    Process { child, http: format!("http://{http}"), grpc }
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_daemon_loses_nothing_and_completes_nothing_twice() {
     use hyper::Method;
@@ -172,8 +139,7 @@ async fn a_killed_daemon_loses_nothing_and_completes_nothing_twice() {
         .await;
     let queued = submit(http.clone(), frame(32, 32)).await;
 
-    p.child.kill().expect("SIGKILL");
-    p.child.wait().unwrap();
+    p.kill();
 
     let mut p = spawn_daemon(dir.path(), &[]);
     let http = HttpClient::new(&p.http, None);
@@ -192,9 +158,7 @@ async fn a_killed_daemon_loses_nothing_and_completes_nothing_twice() {
     assert_eq!(job.state, mcdenoise::grpc::pb::JobState::Succeeded as i32);
 
     // SIGTERM: a graceful exit with status 0.
-    let pid = p.child.id().to_string();
-    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
-    let status = p.child.wait().unwrap();
+    let status = p.terminate();
     assert!(status.success(), "{status:?}");
 }
 

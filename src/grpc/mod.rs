@@ -10,7 +10,7 @@ use tonic::metadata::MetadataValue;
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
-use crate::config::Secret;
+use crate::auth::{ClientId, Tokens};
 use crate::engine::Variant;
 use crate::error::Error;
 use crate::jobs::{
@@ -43,7 +43,7 @@ pub fn status(e: &Error) -> Status {
         Error::NotFound(_) => Status::not_found(message),
         Error::Conflict(_) => Status::failed_precondition(message),
         Error::InProgress(_) => Status::aborted(message),
-        Error::QueueFull { retry_after_s, .. } => {
+        Error::QueueFull { retry_after_s, .. } | Error::ClientLimit { retry_after_s, .. } => {
             let mut s = Status::resource_exhausted(message);
             s.metadata_mut().insert("retry-after", MetadataValue::from(*retry_after_s));
             s
@@ -243,96 +243,6 @@ impl Api {
             .map_err(|e| status(&Error::internal("task", e)))?
             .map_err(|e| status(&e))
     }
-
-    async fn submit(&self, mut stream: Streaming<pb::SubmitJobRequest>) -> Result<pb::Job, Error> {
-        use pb::submit_job_request::Message;
-        let first = stream.message().await.map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
-        let header = match first.and_then(|m| m.message) {
-            Some(Message::Header(h)) => h,
-            Some(Message::Chunk(_)) => {
-                return Err(Error::BadRequest("the first message must be a `header`, not a `chunk`".into()))
-            }
-            None => return Err(Error::BadRequest("empty upload: the first message must be a `header`".into())),
-        };
-        let options = options_from_pb(header.options).map_err(|s| Error::BadRequest(s.message().to_string()))?;
-        if header.frame_size == 0 {
-            return Err(Error::BadRequest("header.frame_size must be the frame's size in bytes".into()));
-        }
-        let max = self.service.settings().max_body_bytes;
-        let declared = header.frame_size.saturating_add(header.reference_size);
-        if declared > max {
-            return Err(Error::TooLarge(format!("the upload declares {declared} bytes, over the limit of {max}")));
-        }
-        let mut ticket = match self.service.admit(options, "grpc")? {
-            Admission::Existing(status) => return Ok(job_pb(&status)),
-            Admission::New(t) => t,
-        };
-        let sizes = [(UploadPart::Frame, header.frame_size), (UploadPart::Reference, header.reference_size)];
-        let mut current = 0usize;
-        let mut sink = Some(ticket.sink(UploadPart::Frame).await?);
-        loop {
-            let msg =
-                stream.message().await.map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
-            let Some(msg) = msg else { break };
-            let chunk = match msg.message {
-                Some(Message::Chunk(c)) => c,
-                Some(Message::Header(_)) => return Err(Error::BadRequest("the header was sent twice".into())),
-                None => return Err(Error::BadRequest("a message with neither header nor chunk".into())),
-            };
-            let part = match pb::Part::try_from(chunk.part) {
-                Ok(pb::Part::Frame) => UploadPart::Frame,
-                Ok(pb::Part::Reference) => UploadPart::Reference,
-                Ok(pb::Part::Unspecified) | Err(_) => {
-                    return Err(Error::BadRequest("every chunk must name its part (FRAME or REFERENCE)".into()))
-                }
-            };
-            // Move on to the reference once the frame is complete.
-            let (expected_part, expected_size) = sizes[current];
-            let done = sink.as_ref().map_or(0, |s| s.written());
-            if part != expected_part {
-                if expected_part == UploadPart::Frame && part == UploadPart::Reference {
-                    return Err(Error::BadRequest(format!(
-                        "a reference chunk arrived after {done} of the frame's {expected_size} bytes; send the frame first"
-                    )));
-                }
-                return Err(Error::BadRequest("frame chunks must all come before the reference's".into()));
-            }
-            if done + chunk.data.len() as u64 > expected_size {
-                return Err(Error::BadRequest(format!(
-                    "the {} is larger than the {expected_size} bytes declared in the header",
-                    part.name()
-                )));
-            }
-            let s = sink.as_mut().expect("a sink is open while data is expected");
-            s.write(&chunk.data).await?;
-            if s.written() == expected_size {
-                ticket.finish(sink.take().expect("open")).await?;
-                current += 1;
-                if current < sizes.len() && sizes[current].1 > 0 {
-                    sink = Some(ticket.sink(sizes[current].0).await?);
-                } else {
-                    // Everything declared has arrived; anything more is an error below.
-                    current = sizes.len();
-                    break;
-                }
-            }
-        }
-        if current < sizes.len() {
-            let (part, size) = sizes[current];
-            let got = sink.as_ref().map_or(0, |s| s.written());
-            return Err(Error::BadRequest(format!(
-                "the upload ended after {got} of the {size} bytes declared for the {}",
-                part.name()
-            )));
-        }
-        if let Some(extra) = stream.message().await.map_err(|s| Error::BadRequest(s.message().to_string()))? {
-            if extra.message.is_some() {
-                return Err(Error::BadRequest("more data than the sizes declared in the header".into()));
-            }
-        }
-        let status = ticket.commit().await?;
-        Ok(job_pb(&status))
-    }
 }
 
 type EventStream = BoxStream<'static, Result<pb::JobEvent, Status>>;
@@ -341,7 +251,8 @@ type ChunkStream = BoxStream<'static, Result<pb::ResultChunk, Status>>;
 #[tonic::async_trait]
 impl Denoiser for Api {
     async fn submit_job(&self, request: Request<Streaming<pb::SubmitJobRequest>>) -> Result<Response<pb::Job>, Status> {
-        let result = self.submit(request.into_inner()).await;
+        let client = client_of(&request);
+        let result = submit_upload(&self.service, &client, request.into_inner()).await;
         if let Err(e) = &result {
             self.service.note_rejection(e);
         }
@@ -453,25 +364,127 @@ impl Denoiser for Api {
     }
 }
 
-/// Checks `authorization: Bearer <token>` metadata when tokens are configured.
+/// Reassembles a `SubmitJob` upload (header, then the frame's chunks, then the
+/// reference's) and queues the job. Separate from the service so that it can be driven by
+/// any stream (the fuzz target `grpc_chunks` does).
+pub async fn submit_upload<S>(service: &JobService, client: &ClientId, mut stream: S) -> Result<pb::Job, Error>
+where
+    S: futures_util::Stream<Item = Result<pb::SubmitJobRequest, Status>> + Unpin,
+{
+    use pb::submit_job_request::Message;
+    let first =
+        stream.next().await.transpose().map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
+    let header = match first.and_then(|m| m.message) {
+        Some(Message::Header(h)) => h,
+        Some(Message::Chunk(_)) => {
+            return Err(Error::BadRequest("the first message must be a `header`, not a `chunk`".into()))
+        }
+        None => return Err(Error::BadRequest("empty upload: the first message must be a `header`".into())),
+    };
+    let options = options_from_pb(header.options).map_err(|s| Error::BadRequest(s.message().to_string()))?;
+    if header.frame_size == 0 {
+        return Err(Error::BadRequest("header.frame_size must be the frame's size in bytes".into()));
+    }
+    let max = service.settings().max_body_bytes;
+    let declared = header.frame_size.saturating_add(header.reference_size);
+    if declared > max {
+        return Err(Error::TooLarge(format!("the upload declares {declared} bytes, over the limit of {max}")));
+    }
+    let mut ticket = match service.admit(options, "grpc", client)? {
+        Admission::Existing(status) => return Ok(job_pb(&status)),
+        Admission::New(t) => t,
+    };
+    let sizes = [(UploadPart::Frame, header.frame_size), (UploadPart::Reference, header.reference_size)];
+    let mut current = 0usize;
+    let mut sink = Some(ticket.sink(UploadPart::Frame).await?);
+    loop {
+        let msg = stream
+            .next()
+            .await
+            .transpose()
+            .map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
+        let Some(msg) = msg else { break };
+        let chunk = match msg.message {
+            Some(Message::Chunk(c)) => c,
+            Some(Message::Header(_)) => return Err(Error::BadRequest("the header was sent twice".into())),
+            None => return Err(Error::BadRequest("a message with neither header nor chunk".into())),
+        };
+        let part = match pb::Part::try_from(chunk.part) {
+            Ok(pb::Part::Frame) => UploadPart::Frame,
+            Ok(pb::Part::Reference) => UploadPart::Reference,
+            Ok(pb::Part::Unspecified) | Err(_) => {
+                return Err(Error::BadRequest("every chunk must name its part (FRAME or REFERENCE)".into()))
+            }
+        };
+        // Move on to the reference once the frame is complete.
+        let (expected_part, expected_size) = sizes[current];
+        let done = sink.as_ref().map_or(0, |s| s.written());
+        if part != expected_part {
+            if expected_part == UploadPart::Frame && part == UploadPart::Reference {
+                return Err(Error::BadRequest(format!(
+                    "a reference chunk arrived after {done} of the frame's {expected_size} bytes; send the frame first"
+                )));
+            }
+            return Err(Error::BadRequest("frame chunks must all come before the reference's".into()));
+        }
+        if done + chunk.data.len() as u64 > expected_size {
+            return Err(Error::BadRequest(format!(
+                "the {} is larger than the {expected_size} bytes declared in the header",
+                part.name()
+            )));
+        }
+        let s = sink.as_mut().expect("a sink is open while data is expected");
+        s.write(&chunk.data).await?;
+        if s.written() == expected_size {
+            ticket.finish(sink.take().expect("open")).await?;
+            current += 1;
+            if current < sizes.len() && sizes[current].1 > 0 {
+                sink = Some(ticket.sink(sizes[current].0).await?);
+            } else {
+                // Everything declared has arrived; anything more is an error below.
+                current = sizes.len();
+                break;
+            }
+        }
+    }
+    if current < sizes.len() {
+        let (part, size) = sizes[current];
+        let got = sink.as_ref().map_or(0, |s| s.written());
+        return Err(Error::BadRequest(format!(
+            "the upload ended after {got} of the {size} bytes declared for the {}",
+            part.name()
+        )));
+    }
+    if let Some(extra) = stream.next().await.transpose().map_err(|s| Error::BadRequest(s.message().to_string()))? {
+        if extra.message.is_some() {
+            return Err(Error::BadRequest("more data than the sizes declared in the header".into()));
+        }
+    }
+    let status = ticket.commit().await?;
+    Ok(job_pb(&status))
+}
+
+/// Who is calling: set by [`Auth`] on every API request.
+fn client_of<T>(request: &Request<T>) -> ClientId {
+    request.extensions().get::<ClientId>().cloned().unwrap_or_else(|| ClientId::peer(request.remote_addr()))
+}
+
+/// Checks `authorization: Bearer <token>` metadata and records who is calling (a
+/// [`ClientId`] extension).
 #[derive(Clone)]
 pub struct Auth {
-    tokens: Arc<Vec<Secret>>,
+    tokens: Arc<Tokens>,
 }
 
 impl tonic::service::Interceptor for Auth {
-    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
-        if self.tokens.is_empty() {
-            return Ok(request);
-        }
-        let value = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
-        match crate::http::bearer(value) {
-            Some(t) if crate::http::token_matches(&self.tokens, t) => Ok(request),
-            Some(_) => Err(status(&Error::Unauthenticated("invalid bearer token".into()))),
-            None => Err(status(&Error::Unauthenticated(
-                "missing bearer token (metadata authorization: Bearer <token>)".into(),
-            ))),
-        }
+    fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        let authorization = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
+        let client = self
+            .tokens
+            .authenticate(authorization, request.remote_addr(), "metadata authorization")
+            .map_err(|e| status(&e))?;
+        request.extensions_mut().insert(client);
+        Ok(request)
     }
 }
 
@@ -479,7 +492,8 @@ impl tonic::service::Interceptor for Auth {
 pub async fn serve(
     listener: tokio::net::TcpListener,
     service: JobService,
-    tokens: Arc<Vec<Secret>>,
+    tokens: Arc<Tokens>,
+    tls: Option<crate::tls::TlsFiles>,
     shutdown: CancellationToken,
 ) -> anyhow::Result<()> {
     let auth = Auth { tokens };
@@ -512,7 +526,13 @@ pub async fn serve(
     });
 
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
-    let result = tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(files) = tls {
+        let (cert, key) = files.read_pem()?;
+        let identity = tonic::transport::Identity::from_pem(cert, key);
+        builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
+    }
+    let result = builder
         .add_service(health)
         .add_service(InterceptedService::new(reflection_v1, auth.clone()))
         .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))

@@ -28,7 +28,7 @@ pub fn status(e: &Error) -> StatusCode {
         Error::NotFound(_) => StatusCode::NOT_FOUND,
         Error::Conflict(_) => StatusCode::CONFLICT,
         Error::InProgress(_) => StatusCode::CONFLICT,
-        Error::QueueFull { .. } => StatusCode::TOO_MANY_REQUESTS,
+        Error::QueueFull { .. } | Error::ClientLimit { .. } => StatusCode::TOO_MANY_REQUESTS,
         Error::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
         Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
     }
@@ -38,13 +38,13 @@ impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let e = self.0;
         let code = status(&e);
-        if code.is_server_error() {
+        if code == StatusCode::INTERNAL_SERVER_ERROR {
             tracing::error!(error = %e, "request failed");
         }
         let body = Json(json!({ "error": { "code": e.code(), "message": e.to_string() } }));
         let mut response = (code, body).into_response();
         match &e {
-            Error::QueueFull { retry_after_s, .. } => {
+            Error::QueueFull { retry_after_s, .. } | Error::ClientLimit { retry_after_s, .. } => {
                 response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(*retry_after_s));
             }
             Error::Unavailable(_) => {

@@ -9,12 +9,16 @@ use std::convert::Infallible;
 use std::sync::Arc;
 
 use axum::body::Body;
-use axum::extract::{DefaultBodyLimit, FromRequest, MatchedPath, Multipart, Path, Query, Request, State};
+use axum::extract::connect_info::Connected;
+use axum::extract::{
+    ConnectInfo, DefaultBodyLimit, Extension, FromRequest, MatchedPath, Multipart, Path, Query, Request, State,
+};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
+use axum::serve::IncomingStream;
 use axum::{Json, Router};
 use futures_util::{Stream, StreamExt};
 use serde::Deserialize;
@@ -23,7 +27,7 @@ use tokio_util::sync::CancellationToken;
 
 pub use error::ApiError;
 
-use crate::config::Secret;
+use crate::auth::{ClientId, Tokens};
 use crate::engine::Variant;
 use crate::error::Error;
 use crate::jobs::{
@@ -38,27 +42,63 @@ pub const OPENAPI: &str = include_str!("openapi.json");
 #[derive(Clone)]
 pub struct AppState {
     pub service: JobService,
-    /// Accepted bearer tokens; empty disables authentication.
-    pub tokens: Arc<Vec<Secret>>,
+    /// Accepted bearer tokens; none disables authentication.
+    pub tokens: Arc<Tokens>,
     /// Cancelled when the server stops: open event streams end.
     pub shutdown: CancellationToken,
 }
 
-/// The whole HTTP API.
+/// Every route that needs a bearer token (when tokens are configured), as
+/// `(method, path template)`. The router is built from this table, and a test calls each
+/// entry without a token and checks the OpenAPI document lists exactly these plus
+/// [`OPEN_ROUTES`].
+pub const PROTECTED_ROUTES: &[(&str, &str)] = &[
+    ("POST", "/v1/jobs"),
+    ("GET", "/v1/jobs"),
+    ("GET", "/v1/jobs/{id}"),
+    ("DELETE", "/v1/jobs/{id}"),
+    ("POST", "/v1/jobs/{id}/cancel"),
+    ("GET", "/v1/jobs/{id}/events"),
+    ("GET", "/v1/jobs/{id}/result"),
+    ("GET", "/v1/models"),
+    ("GET", "/v1/openapi.json"),
+    ("GET", "/metrics"),
+];
+
+/// The probes, open to anyone (Kubernetes calls them without credentials).
+pub const OPEN_ROUTES: &[(&str, &str)] = &[("GET", "/livez"), ("GET", "/readyz")];
+
+fn handler(method: &str, path: &str) -> axum::routing::MethodRouter<AppState> {
+    match (method, path) {
+        ("POST", "/v1/jobs") => post(submit),
+        ("GET", "/v1/jobs") => get(list),
+        ("GET", "/v1/jobs/{id}") => get(get_job),
+        ("DELETE", "/v1/jobs/{id}") => axum::routing::delete(delete_job),
+        ("POST", "/v1/jobs/{id}/cancel") => post(cancel),
+        ("GET", "/v1/jobs/{id}/events") => get(events),
+        ("GET", "/v1/jobs/{id}/result") => get(result),
+        ("GET", "/v1/models") => get(models),
+        ("GET", "/v1/openapi.json") => get(openapi),
+        ("GET", "/metrics") => get(metrics),
+        ("GET", "/livez") => get(livez),
+        ("GET", "/readyz") => get(readyz),
+        other => unreachable!("no handler for {other:?}"),
+    }
+}
+
+fn routes(table: &[(&str, &str)]) -> Router<AppState> {
+    let mut router = Router::new();
+    for (method, path) in table {
+        router = router.route(path, handler(method, path));
+    }
+    router
+}
+
+/// The whole HTTP API. Serve it with `into_make_service_with_connect_info::<Peer>()`:
+/// without authentication, clients are told apart by their address.
 pub fn router(state: AppState) -> Router {
-    let protected = Router::new()
-        .route("/v1/jobs", post(submit).get(list))
-        .route("/v1/jobs/{id}", get(get_job).delete(delete_job))
-        .route("/v1/jobs/{id}/cancel", post(cancel))
-        .route("/v1/jobs/{id}/events", get(events))
-        .route("/v1/jobs/{id}/result", get(result))
-        .route("/v1/models", get(models))
-        .route("/v1/openapi.json", get(openapi))
-        .route("/metrics", get(metrics))
-        .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
-    Router::new()
-        .route("/livez", get(livez))
-        .route("/readyz", get(readyz))
+    let protected = routes(PROTECTED_ROUTES).route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
+    routes(OPEN_ROUTES)
         .merge(protected)
         .fallback(|| async { ApiError::from(Error::NotFound("no such route".into())) })
         // Uploads are streamed to disk and limited by `--max-body-bytes` as they arrive.
@@ -77,7 +117,8 @@ async fn observe(State(app): State<AppState>, request: Request, next: Next) -> R
     let status = response.status();
     app.service.telemetry().http_request(route, status.as_u16());
     let ms = t.elapsed().as_secs_f64() * 1e3;
-    if status.is_server_error() {
+    // 503 is an expected answer (loading, draining): not an error of the daemon.
+    if status.is_server_error() && status != StatusCode::SERVICE_UNAVAILABLE {
         tracing::error!(%method, route, status = status.as_u16(), ms, "http request");
     } else if route != "/livez" && route != "/readyz" && route != "/metrics" {
         tracing::debug!(%method, route, status = status.as_u16(), ms, "http request");
@@ -85,33 +126,33 @@ async fn observe(State(app): State<AppState>, request: Request, next: Next) -> R
     response
 }
 
-/// Constant-time comparison, so that response timing says nothing about a token.
-pub fn token_matches(tokens: &[Secret], presented: &str) -> bool {
-    tokens.iter().fold(false, |found, t| {
-        let a = t.0.as_bytes();
-        let b = presented.as_bytes();
-        let same = a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0;
-        found | same
-    })
-}
+/// The address of the other end of a connection, plain or TLS (serve the router with
+/// `into_make_service_with_connect_info::<Peer>()`).
+#[derive(Clone, Copy, Debug)]
+pub struct Peer(pub std::net::SocketAddr);
 
-/// The token of an `Authorization: Bearer <token>` value.
-pub fn bearer(value: Option<&str>) -> Option<&str> {
-    let v = value?.trim();
-    let (scheme, token) = v.split_once(' ')?;
-    scheme.eq_ignore_ascii_case("bearer").then(|| token.trim())
-}
-
-async fn authenticate(State(app): State<AppState>, request: Request, next: Next) -> Response {
-    if app.tokens.is_empty() {
-        return next.run(request).await;
+impl Connected<IncomingStream<'_, tokio::net::TcpListener>> for Peer {
+    fn connect_info(stream: IncomingStream<'_, tokio::net::TcpListener>) -> Peer {
+        Peer(*stream.remote_addr())
     }
-    let presented = bearer(request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()));
-    match presented {
-        Some(token) if token_matches(&app.tokens, token) => next.run(request).await,
-        Some(_) => ApiError::from(Error::Unauthenticated("invalid bearer token".into())).into_response(),
-        None => ApiError::from(Error::Unauthenticated("missing bearer token (Authorization: Bearer <token>)".into()))
-            .into_response(),
+}
+
+impl Connected<IncomingStream<'_, crate::tls::TlsListener>> for Peer {
+    fn connect_info(stream: IncomingStream<'_, crate::tls::TlsListener>) -> Peer {
+        Peer(*stream.remote_addr())
+    }
+}
+
+/// Checks the bearer token and records who is calling (a [`ClientId`] extension).
+async fn authenticate(State(app): State<AppState>, mut request: Request, next: Next) -> Response {
+    let peer = request.extensions().get::<ConnectInfo<Peer>>().map(|c| c.0 .0);
+    let authorization = request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok());
+    match app.tokens.authenticate(authorization, peer, "header Authorization") {
+        Ok(client) => {
+            request.extensions_mut().insert(client);
+            next.run(request).await
+        }
+        Err(e) => ApiError::from(e).into_response(),
     }
 }
 
@@ -254,16 +295,20 @@ fn accepted(status: &JobStatus, replayed: bool) -> Response {
 
 /// `POST /v1/jobs`: a raw EXR body (options in the query string) or multipart
 /// (`options` JSON part first, then `frame`, then optionally `reference`).
-async fn submit(State(app): State<AppState>, request: Request) -> Result<Response, ApiError> {
+async fn submit(
+    State(app): State<AppState>,
+    Extension(client): Extension<ClientId>,
+    request: Request,
+) -> Result<Response, ApiError> {
     let service = app.service.clone();
-    let result = submit_inner(app, request).await;
+    let result = submit_inner(app, client, request).await;
     if let Err(e) = &result {
         service.note_rejection(&e.0);
     }
     result
 }
 
-async fn submit_inner(app: AppState, request: Request) -> Result<Response, ApiError> {
+async fn submit_inner(app: AppState, client: ClientId, request: Request) -> Result<Response, ApiError> {
     let max = app.service.settings().max_body_bytes;
     let declared =
         request.headers().get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()).and_then(|v| v.parse::<u64>().ok());
@@ -278,7 +323,7 @@ async fn submit_inner(app: AppState, request: Request) -> Result<Response, ApiEr
     let content_type =
         request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("").to_ascii_lowercase();
     if content_type.starts_with("multipart/form-data") {
-        return submit_multipart(app, options, request).await;
+        return submit_multipart(app, client, options, request).await;
     }
     if !(content_type.is_empty()
         || content_type.starts_with("image/x-exr")
@@ -289,7 +334,7 @@ async fn submit_inner(app: AppState, request: Request) -> Result<Response, ApiEr
         ))
         .into());
     }
-    let mut ticket = match app.service.admit(options, "http")? {
+    let mut ticket = match app.service.admit(options, "http", &client)? {
         Admission::Existing(status) => return Ok(accepted(&status, true)),
         Admission::New(t) => t,
     };
@@ -313,7 +358,12 @@ fn serde_urlencoded_query(q: &str) -> Result<SubmitQuery, Error> {
         .map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))
 }
 
-async fn submit_multipart(app: AppState, mut options: JobOptions, request: Request) -> Result<Response, ApiError> {
+async fn submit_multipart(
+    app: AppState,
+    client: ClientId,
+    mut options: JobOptions,
+    request: Request,
+) -> Result<Response, ApiError> {
     let header_key = idempotency_header(request.headers());
     let mut multipart = Multipart::from_request(request, &())
         .await
@@ -342,7 +392,7 @@ async fn submit_multipart(app: AppState, mut options: JobOptions, request: Reque
             "frame" | "reference" => {
                 let part = if name == "frame" { UploadPart::Frame } else { UploadPart::Reference };
                 if ticket.is_none() {
-                    match app.service.admit(options.clone(), "http")? {
+                    match app.service.admit(options.clone(), "http", &client)? {
                         Admission::Existing(status) => return Ok(accepted(&status, true)),
                         Admission::New(t) => ticket = Some(t),
                     }

@@ -41,6 +41,7 @@ use serde::Serialize;
 use tokio::io::AsyncWriteExt;
 use tokio::sync::{broadcast, watch};
 
+use crate::auth::ClientId;
 use crate::config::ServeArgs;
 use crate::engine::{EngineConfig, Variant};
 use crate::error::{Error, Result};
@@ -89,6 +90,10 @@ pub struct Settings {
     pub default_deadline: Option<Duration>,
     pub limits: Limits,
     pub max_body_bytes: u64,
+    /// Uploads one client may have in flight at once.
+    pub max_uploads_per_client: usize,
+    /// Unfinished (uploading, queued or running) jobs one client may have.
+    pub max_jobs_per_client: usize,
     pub workers: usize,
     pub engine: EngineConfig,
     pub tile_delay: Duration,
@@ -107,6 +112,8 @@ impl Settings {
             default_deadline: Some(args.job_deadline).filter(|d| !d.is_zero()),
             limits: args.limits(),
             max_body_bytes: args.max_body_bytes,
+            max_uploads_per_client: args.max_uploads_per_client,
+            max_jobs_per_client: args.max_jobs_per_client(),
             workers: args.workers(),
             engine,
             tile_delay: args.debug_tile_delay,
@@ -138,6 +145,8 @@ struct State {
     keys: HashMap<String, String>,
     /// Idempotency keys of uploads in progress.
     uploading: HashSet<String>,
+    /// Uploads in progress per client.
+    uploads: HashMap<ClientId, usize>,
     next_seq: u64,
     running: usize,
     workers_ready: usize,
@@ -310,7 +319,7 @@ impl JobService {
 
     /// Admits a submission before its frame is read: checks readiness, the idempotency key
     /// and the capacity, and reserves a place in the queue.
-    pub fn admit(&self, options: JobOptions, transport: &'static str) -> Result<Admission> {
+    pub fn admit(&self, options: JobOptions, transport: &'static str, client: &ClientId) -> Result<Admission> {
         let options = options.normalize().map_err(Error::BadRequest)?;
         let mut st = self.lock();
         match self.phase() {
@@ -336,7 +345,9 @@ impl JobService {
         if st.queue.len() + st.reserved >= capacity {
             return Err(Error::QueueFull { capacity, retry_after_s: self.retry_after_s(&st) });
         }
+        self.check_client(&st, client)?;
         st.reserved += 1;
+        *st.uploads.entry(client.clone()).or_default() += 1;
         if let Some(key) = &options.idempotency_key {
             st.uploading.insert(key.clone());
         }
@@ -351,13 +362,48 @@ impl JobService {
             frame: None,
             reference: None,
             done: false,
+            client: client.clone(),
         }))
+    }
+
+    /// Refuses a new upload when `client` is at its own limits.
+    fn check_client(&self, st: &State, client: &ClientId) -> Result<()> {
+        let s = &self.inner.settings;
+        let uploads = st.uploads.get(client).copied().unwrap_or(0);
+        if uploads >= s.max_uploads_per_client {
+            return Err(Error::ClientLimit {
+                message: format!(
+                    "{} has {uploads} uploads in progress, the most one client may have at once \
+                     (--max-uploads-per-client); retry when one completes",
+                    client.as_str()
+                ),
+                retry_after_s: 1,
+            });
+        }
+        let unfinished = st
+            .jobs
+            .values()
+            .filter(|e| !e.record.state.is_terminal() && e.record.client.as_deref() == Some(client.as_str()))
+            .count();
+        if unfinished + uploads >= s.max_jobs_per_client {
+            return Err(Error::ClientLimit {
+                message: format!(
+                    "{} has {} unfinished jobs, the most one client may have (--max-jobs-per-client); \
+                     retry when some finish",
+                    client.as_str(),
+                    unfinished + uploads
+                ),
+                retry_after_s: self.retry_after_s(st),
+            });
+        }
+        Ok(())
     }
 
     /// Counts a refused submission in the metrics.
     pub fn note_rejection(&self, e: &Error) {
         let reason = match e {
             Error::QueueFull { .. } => "queue_full",
+            Error::ClientLimit { .. } => "client_limit",
             Error::BadRequest(_) | Error::InvalidFrame(_) => "invalid",
             Error::TooLarge(_) => "too_large",
             Error::Unavailable(_) => "unavailable",
@@ -400,10 +446,12 @@ impl JobService {
             missing_variances: Vec::new(),
             error: None,
             result_bytes: None,
+            client: Some(ticket.client.as_str().to_string()),
         };
         self.inner.store.put(&record)?;
         st.next_seq += 1;
         st.reserved -= 1;
+        release_upload(&mut st, &ticket.client);
         if let Some(key) = &record.options.idempotency_key {
             st.uploading.remove(key);
             st.keys.insert(key.clone(), record.id.clone());
@@ -420,9 +468,10 @@ impl JobService {
         Ok(status)
     }
 
-    fn release(&self, key: Option<&str>) {
+    fn release(&self, key: Option<&str>, client: &ClientId) {
         let mut st = self.lock();
         st.reserved -= 1;
+        release_upload(&mut st, client);
         if let Some(key) = key {
             st.uploading.remove(key);
         }
@@ -975,6 +1024,16 @@ pub struct Ticket {
     frame: Option<u64>,
     reference: Option<u64>,
     done: bool,
+    client: ClientId,
+}
+
+fn release_upload(st: &mut State, client: &ClientId) {
+    if let Some(n) = st.uploads.get_mut(client) {
+        *n -= 1;
+        if *n == 0 {
+            st.uploads.remove(client);
+        }
+    }
 }
 
 impl Ticket {
@@ -1077,6 +1136,7 @@ impl Ticket {
             width = status.record.width,
             height = status.record.height,
             bytes = status.record.input_bytes,
+            client = status.record.client.as_deref().unwrap_or(""),
             "queued"
         );
         Ok(status)
@@ -1086,7 +1146,7 @@ impl Ticket {
 impl Drop for Ticket {
     fn drop(&mut self) {
         if !self.done {
-            self.service.release(self.options.idempotency_key.as_deref());
+            self.service.release(self.options.idempotency_key.as_deref(), &self.client);
             let dir = self.service.inner.store.job_dir(&self.id);
             // Small and rare (refused uploads): removing inline is fine.
             let _ = std::fs::remove_dir_all(dir);

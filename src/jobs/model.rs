@@ -271,6 +271,9 @@ pub struct JobRecord {
     pub missing_variances: Vec<String>,
     pub error: Option<JobError>,
     pub result_bytes: Option<u64>,
+    /// Who submitted it (`token:<digest prefix>` or `ip:<address>`), for per-client limits.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client: Option<String>,
 }
 
 /// A job as clients see it: the record plus its live queue position.

@@ -212,3 +212,63 @@ pub fn multipart(options: &str, parts: &[(&str, &[u8])]) -> (String, Vec<u8>) {
     body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
     (format!("multipart/form-data; boundary={boundary}"), body)
 }
+
+/// The binary, started as `mcdenoise serve` with JSON logs; its addresses read from the
+/// "listening" log line. Every log line is kept in `logs`.
+pub struct Process {
+    pub child: std::process::Child,
+    pub http: String,
+    pub grpc: String,
+    pub logs: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+}
+
+/// Starts the daemon binary at log level `info` (a `--log` in `extra` wins).
+pub fn spawn_daemon(data_dir: &Path, extra: &[&str]) -> Process {
+    use std::io::BufRead;
+    let mut argv = args(data_dir, &["--log-format", "json", "--log", "info"]);
+    argv.extend(extra.iter().map(|s| s.to_string()));
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_mcdenoise"))
+        .args(&argv)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("the binary starts");
+    let stderr = child.stderr.take().unwrap();
+    let logs = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let (tx, rx) = std::sync::mpsc::channel();
+    let kept = logs.clone();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Ok(v) = serde_json::from_str::<Value>(&line) {
+                if v["message"] == "listening" {
+                    let _ = tx.send((v["http"].as_str().unwrap().to_string(), v["grpc"].as_str().unwrap().to_string()));
+                }
+            }
+            kept.lock().unwrap().push(line);
+        }
+    });
+    let (http, grpc) = rx.recv_timeout(Duration::from_secs(30)).expect("the daemon logs its addresses");
+    Process { child, http: format!("http://{http}"), grpc, logs }
+}
+
+impl Process {
+    /// Sends SIGTERM and waits for the exit.
+    pub fn terminate(&mut self) -> std::process::ExitStatus {
+        let pid = self.child.id().to_string();
+        assert!(std::process::Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+        self.child.wait().unwrap()
+    }
+
+    /// SIGKILL.
+    pub fn kill(&mut self) {
+        self.child.kill().expect("SIGKILL");
+        self.child.wait().unwrap();
+    }
+}
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
