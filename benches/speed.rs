@@ -24,12 +24,11 @@ use bytes::Bytes;
 use exr::prelude::*;
 use hyper::{Method, StatusCode};
 use serde_json::{json, Value};
-use smallvec::SmallVec;
 
 use mcdenoise::client::{body_bytes, read_json, HttpClient};
 use mcdenoise::config::parse_serve_args;
 use mcdenoise::engine::{model, runtime, synthetic_planes, Engine, EngineConfig};
-use mcdenoise::frame::{self, Frame, Limits, OutputLayer};
+use mcdenoise::frame::{self, write_planes, Frame, Limits, OutputLayer, SampleType};
 use mcdenoise::server::Server;
 
 struct Args {
@@ -91,19 +90,9 @@ fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
 
 /// A synthetic frame with every channel (covariance included) as an EXR file, float32.
 fn frame_exr(w: usize, h: usize) -> Vec<u8> {
-    let mut list = SmallVec::<[AnyChannel<FlatSamples>; 4]>::new();
-    for (name, plane) in synthetic_planes(w, h, true) {
-        list.push(AnyChannel::new(name.as_str(), FlatSamples::F32(plane)));
-    }
-    let image = Image::from_layer(Layer::new(
-        (w, h),
-        LayerAttributes::default(),
-        Encoding::FAST_LOSSLESS,
-        AnyChannels::sort(list),
-    ));
-    let mut out = std::io::Cursor::new(Vec::new());
-    image.write().to_buffered(&mut out).expect("encode synthetic frame");
-    out.into_inner()
+    let planes = synthetic_planes(w, h, true);
+    let named = planes.iter().map(|(n, p)| (n.as_str(), p.as_slice()));
+    write_planes(w, h, named, SampleType::F32, Encoding::FAST_LOSSLESS).expect("encode synthetic frame")
 }
 
 fn engine(a: &Args) -> Result<Engine> {

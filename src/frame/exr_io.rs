@@ -134,19 +134,47 @@ pub struct OutputLayer<'a> {
     pub planes: [&'a [f32]; 3],
 }
 
-/// Encodes layers as a single-part float32 EXR (ZIP compression, lossless), in memory.
-pub fn write_exr(width: usize, height: usize, layers: &[OutputLayer<'_>]) -> exr::error::Result<Vec<u8>> {
-    let mut list = smallvec::SmallVec::<[AnyChannel<FlatSamples>; 4]>::new();
-    for layer in layers {
-        for (c, suffix) in ["R", "G", "B"].into_iter().enumerate() {
-            let name = if layer.prefix.is_empty() { suffix.to_string() } else { format!("{}.{suffix}", layer.prefix) };
-            list.push(AnyChannel::new(name.as_str(), FlatSamples::F32(layer.planes[c].to_vec())));
-        }
-    }
-    let channels = AnyChannels::sort(list);
+/// Sample type of written channels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SampleType {
+    F16,
+    F32,
+}
+
+/// Encodes named planes as a single-part EXR (lossless `encoding`), in memory: the one
+/// writer of the crate, its benchmarks, tests and fuzz targets.
+pub fn write_planes<'a>(
+    width: usize,
+    height: usize,
+    planes: impl IntoIterator<Item = (&'a str, &'a [f32])>,
+    sample: SampleType,
+    encoding: Encoding,
+) -> exr::error::Result<Vec<u8>> {
+    let list: smallvec::SmallVec<[AnyChannel<FlatSamples>; 4]> = planes
+        .into_iter()
+        .map(|(name, data)| {
+            let samples = match sample {
+                SampleType::F32 => FlatSamples::F32(data.to_vec()),
+                SampleType::F16 => FlatSamples::F16(data.iter().map(|v| f16::from_f32(*v)).collect()),
+            };
+            AnyChannel::new(name, samples)
+        })
+        .collect();
     let image =
-        Image::from_layer(Layer::new((width, height), LayerAttributes::default(), Encoding::SMALL_LOSSLESS, channels));
+        Image::from_layer(Layer::new((width, height), LayerAttributes::default(), encoding, AnyChannels::sort(list)));
     let mut out = Cursor::new(Vec::new());
     image.write().to_buffered(&mut out)?;
     Ok(out.into_inner())
+}
+
+/// Encodes layers as a single-part float32 EXR (ZIP compression, lossless), in memory.
+pub fn write_exr(width: usize, height: usize, layers: &[OutputLayer<'_>]) -> exr::error::Result<Vec<u8>> {
+    let mut named: Vec<(String, &[f32])> = Vec::new();
+    for layer in layers {
+        for (c, suffix) in ["R", "G", "B"].into_iter().enumerate() {
+            let name = if layer.prefix.is_empty() { suffix.to_string() } else { format!("{}.{suffix}", layer.prefix) };
+            named.push((name, layer.planes[c]));
+        }
+    }
+    write_planes(width, height, named.iter().map(|(n, d)| (n.as_str(), *d)), SampleType::F32, Encoding::SMALL_LOSSLESS)
 }

@@ -6,7 +6,7 @@ mod exr_io;
 pub mod layout;
 pub mod renderers;
 
-pub use exr_io::{read_header, write_exr, HeaderInfo, OutputLayer};
+pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, SampleType};
 pub use layout::{Buffer, BUFFER_COUNT};
 
 use serde::Serialize;

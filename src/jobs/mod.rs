@@ -176,7 +176,8 @@ pub struct JobService {
     inner: Arc<Inner>,
 }
 
-/// The result of an admission.
+/// The result of an admission (short-lived: the size of its variants does not matter).
+#[allow(clippy::large_enum_variant)]
 pub enum Admission {
     /// A new job: upload its frame through the ticket, then [`Ticket::commit`].
     New(Ticket),
@@ -843,11 +844,8 @@ impl JobService {
             }
         };
         let current = self.lock().jobs.get(id).map(|e| e.record.clone());
-        let prepared = match current {
-            // Deleted while running: the files go below.
-            None => None,
-            Some(record) => Some(self.write_result(record, *success)),
-        };
+        // None: deleted while running; the files go below.
+        let prepared = current.map(|record| self.write_result(record, *success));
         let mut st = self.lock();
         st.running -= 1;
         self.inner.running.send_replace(st.running);

@@ -26,12 +26,7 @@ pub fn named_planes(w: usize, h: usize, with_covariance: bool) -> Vec<(String, V
     synthetic_planes(w, h, with_covariance)
 }
 
-/// Sample type of written channels.
-#[derive(Clone, Copy)]
-pub enum Sample {
-    F16,
-    F32,
-}
+pub use mcdenoise::frame::SampleType as Sample;
 
 fn channel(name: &str, data: &[f32], sample: Sample) -> AnyChannel<FlatSamples> {
     let samples = match sample {
@@ -43,16 +38,8 @@ fn channel(name: &str, data: &[f32], sample: Sample) -> AnyChannel<FlatSamples> 
 
 /// A single-part EXR holding `planes`.
 pub fn exr_single(w: usize, h: usize, planes: &[(String, Vec<f32>)], sample: Sample) -> Vec<u8> {
-    let list: SmallVec<[AnyChannel<FlatSamples>; 4]> = planes.iter().map(|(n, d)| channel(n, d, sample)).collect();
-    let image = Image::from_layer(Layer::new(
-        (w, h),
-        LayerAttributes::default(),
-        Encoding::FAST_LOSSLESS,
-        AnyChannels::sort(list),
-    ));
-    let mut out = std::io::Cursor::new(Vec::new());
-    image.write().to_buffered(&mut out).unwrap();
-    out.into_inner()
+    let named = planes.iter().map(|(n, d)| (n.as_str(), d.as_slice()));
+    mcdenoise::frame::write_planes(w, h, named, sample, Encoding::FAST_LOSSLESS).unwrap()
 }
 
 /// A multi-part EXR: one part per prefix (`diffuse.R` goes to part `diffuse` as channel

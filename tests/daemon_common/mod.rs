@@ -220,6 +220,7 @@ pub struct Process {
     pub http: String,
     pub grpc: String,
     pub logs: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+    reader: Option<std::thread::JoinHandle<()>>,
 }
 
 /// Starts the daemon binary at log level `info` (a `--log` in `extra` wins).
@@ -237,7 +238,7 @@ pub fn spawn_daemon(data_dir: &Path, extra: &[&str]) -> Process {
     let logs = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
     let (tx, rx) = std::sync::mpsc::channel();
     let kept = logs.clone();
-    std::thread::spawn(move || {
+    let reader = std::thread::spawn(move || {
         for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
             if let Ok(v) = serde_json::from_str::<Value>(&line) {
                 if v["message"] == "listening" {
@@ -248,21 +249,30 @@ pub fn spawn_daemon(data_dir: &Path, extra: &[&str]) -> Process {
         }
     });
     let (http, grpc) = rx.recv_timeout(Duration::from_secs(30)).expect("the daemon logs its addresses");
-    Process { child, http: format!("http://{http}"), grpc, logs }
+    Process { child, http: format!("http://{http}"), grpc, logs, reader: Some(reader) }
 }
 
 impl Process {
-    /// Sends SIGTERM and waits for the exit.
+    /// Sends SIGTERM and waits for the exit; `logs` is then complete.
     pub fn terminate(&mut self) -> std::process::ExitStatus {
         let pid = self.child.id().to_string();
         assert!(std::process::Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
-        self.child.wait().unwrap()
+        let status = self.child.wait().unwrap();
+        self.join_logs();
+        status
     }
 
     /// SIGKILL.
     pub fn kill(&mut self) {
         self.child.kill().expect("SIGKILL");
         self.child.wait().unwrap();
+        self.join_logs();
+    }
+
+    fn join_logs(&mut self) {
+        if let Some(reader) = self.reader.take() {
+            let _ = reader.join();
+        }
     }
 }
 
