@@ -300,6 +300,7 @@ async fn submit(
     Extension(client): Extension<ClientId>,
     request: Request,
 ) -> Result<Response, ApiError> {
+    let request = request.map(|body| Body::new(DrainOnDrop(Some(body))));
     let service = app.service.clone();
     let result = submit_inner(app, client, request).await;
     if let Err(e) = &result {
@@ -350,6 +351,64 @@ async fn submit_inner(app: AppState, client: ClientId, request: Request) -> Resu
     ticket.finish(sink).await?;
     let status = ticket.commit().await?;
     Ok(accepted(&status, false))
+}
+
+/// Unread upload bytes discarded after an early answer, at most (beyond: the connection
+/// is closed).
+const DRAIN_BYTES: u64 = 64 << 20;
+/// Time given to a client to finish sending after an early answer.
+const DRAIN_TIME: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// The body of an upload. Dropped before its end (a refusal such as 429, or an error
+/// mid-upload), the rest is read and discarded in the background, up to [`DRAIN_BYTES`] and
+/// [`DRAIN_TIME`]: the answer goes out at once, and a client still sending reads it instead
+/// of a reset connection.
+struct DrainOnDrop(Option<Body>);
+
+impl http_body::Body for DrainOnDrop {
+    type Data = bytes::Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        self: std::pin::Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<http_body::Frame<bytes::Bytes>, axum::Error>>> {
+        match self.get_mut().0.as_mut() {
+            Some(body) => std::pin::Pin::new(body).poll_frame(cx),
+            None => std::task::Poll::Ready(None),
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.0.as_ref().is_none_or(http_body::Body::is_end_stream)
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.0.as_ref().map(http_body::Body::size_hint).unwrap_or_default()
+    }
+}
+
+impl Drop for DrainOnDrop {
+    fn drop(&mut self) {
+        let Some(body) = self.0.take() else { return };
+        if http_body::Body::is_end_stream(&body) {
+            return;
+        }
+        let Ok(runtime) = tokio::runtime::Handle::try_current() else { return };
+        runtime.spawn(async move {
+            let mut stream = body.into_data_stream();
+            let mut read = 0u64;
+            let _ = tokio::time::timeout(DRAIN_TIME, async {
+                while let Some(Ok(chunk)) = stream.next().await {
+                    read += chunk.len() as u64;
+                    if read > DRAIN_BYTES {
+                        break;
+                    }
+                }
+            })
+            .await;
+        });
+    }
 }
 
 fn serde_urlencoded_query(q: &str) -> Result<SubmitQuery, Error> {
