@@ -149,6 +149,23 @@ fn output_is_finite_and_positive_where_input_is() {
 }
 
 #[test]
+fn negative_colors_and_albedos_give_a_finite_output() {
+    // An albedo of exactly -EPS would divide by zero if it were not taken as 0.
+    let mut planes = named_planes(24, 16, false);
+    for (name, plane) in planes.iter_mut() {
+        if name.starts_with("albedo.") {
+            plane.iter_mut().enumerate().for_each(|(i, v)| *v = if i % 2 == 0 { -EPS } else { -0.5 });
+        }
+        if name.starts_with("diffuse.") || name.starts_with("specular.") {
+            plane.iter_mut().step_by(3).for_each(|v| *v = -2.0);
+        }
+    }
+    let frame = frame_of(&exr_single(24, 16, &planes, Sample::F32));
+    let out = engine(16).denoise(&frame, None, &mut |_| true).unwrap();
+    assert!(out.color.iter().flatten().all(|v| v.is_finite()));
+}
+
+#[test]
 fn cancellation_stops_between_tiles() {
     let mut e = engine(16);
     let mut seen = 0;

@@ -212,7 +212,7 @@ impl Engine {
         let n = w * h;
         let albedo = frame.planes(Buffer::Albedo);
         let diffuse: [Plane; 3] = std::array::from_fn(|c| {
-            filtered[0][c * n..][..n].iter().zip(&albedo[c]).map(|(d, a)| d * (a + EPS)).collect()
+            filtered[0][c * n..][..n].iter().zip(&albedo[c]).map(|(d, a)| d * (a.max(0.0) + EPS)).collect()
         });
         let specular: [Plane; 3] =
             std::array::from_fn(|c| filtered[1][c * n..][..n].iter().map(|s| s.exp_m1()).collect());

@@ -86,7 +86,8 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, variant: Variant, rect: Rec
     let mut features = vec![0f32; variant.feature_channels() * n];
 
     let albedo = frame.planes(Buffer::Albedo);
-    // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)².
+    // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)². Negative colors and
+    // albedos (a malformed frame) are taken as 0: a + ε is then never near zero.
     {
         let d = frame.planes(Buffer::Diffuse);
         let [base, var, gx, gy] = color_layout(&mut diffuse, n);
@@ -95,14 +96,14 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, variant: Variant, rect: Rec
             with_gradients(
                 frame,
                 rect,
-                |i| d[i] / (a[i] + EPS),
+                |i| d[i].max(0.0) / (a[i].max(0.0) + EPS),
                 &mut base[c * n..][..n],
                 &mut gx[c * n..][..n],
                 &mut gy[c * n..][..n],
             );
         }
         per_pixel(frame, rect, var, |i| {
-            let v = |c: usize| frame.plane(Buffer::DiffuseVariance, c)[i] / (albedo[c][i] + EPS).powi(2);
+            let v = |c: usize| frame.plane(Buffer::DiffuseVariance, c)[i] / (albedo[c][i].max(0.0) + EPS).powi(2);
             luminance(v(0), v(1), v(2))
         });
     }

@@ -82,8 +82,8 @@ class _KernelFilter(torch.autograd.Function):
 
 
 def inverse_diffuse(x: torch.Tensor, albedo: torch.Tensor) -> torch.Tensor:
-    """Undo d' = d / (a + EPS)."""
-    return x * (albedo + EPS)
+    """Undo d' = d / (a + EPS) (negative albedos taken as 0, as the engine does)."""
+    return x * (albedo.clamp(min=0) + EPS)
 
 
 def inverse_specular(x: torch.Tensor) -> torch.Tensor:
