@@ -21,7 +21,7 @@ pub struct HeaderInfo {
 /// Reads and checks the headers: size limit, deep data, subsampling, parts of different
 /// sizes, duplicate channels.
 pub fn read_header(reader: impl std::io::Read, limits: &Limits) -> std::result::Result<HeaderInfo, FrameError> {
-    let meta = exr::meta::MetaData::read_from_buffered(reader, false).map_err(map_exr_error)?;
+    let meta = contain(|| exr::meta::MetaData::read_from_buffered(reader, false))?.map_err(map_exr_error)?;
     let mut size: Option<(String, (usize, usize))> = None;
     let mut channels: Vec<String> = Vec::new();
     for header in meta.headers.iter() {
@@ -76,14 +76,16 @@ pub(super) fn read_planes(
 ) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
     let HeaderInfo { width, height, .. } = read_header(Cursor::new(bytes), limits)?;
 
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .all_layers()
-        .all_attributes()
-        .from_buffered(Cursor::new(bytes))
-        .map_err(map_exr_error)?;
+    let image = contain(|| {
+        read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .all_layers()
+            .all_attributes()
+            .from_buffered(Cursor::new(bytes))
+    })?
+    .map_err(map_exr_error)?;
 
     let mut planes: NamedPlanes = Vec::new();
     for layer in image.layer_data {
@@ -106,6 +108,18 @@ pub(super) fn read_planes(
         }
     }
     Ok((width, height, planes))
+}
+
+/// Runs the EXR decoder, a dependency, so that a panic in it on a malformed file (one was
+/// found by fuzzing: fuzz/regressions/exr_frame) becomes this file's error instead of the
+/// end of the request or the worker.
+fn contain<T>(decode: impl FnOnce() -> T) -> std::result::Result<T, FrameError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)).map_err(|panic| {
+        FrameError::Corrupt(format!(
+            "the EXR decoder failed on this file ({})",
+            crate::error::panic_message(panic.as_ref())
+        ))
+    })
 }
 
 fn full_name(part: &str, channel: &str) -> String {

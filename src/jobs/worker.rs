@@ -49,7 +49,13 @@ fn worker_main(service: JobService, index: usize) {
         let span = tracing::info_span!("job", job_id = %claim.id, attempt = claim.attempt);
         let _guard = span.enter();
         tracing::info!("started");
-        let outcome = run(&service, &mut engine, &claim);
+        // A panic fails this job only; the worker and its engine go on.
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(&service, &mut engine, &claim)))
+            .unwrap_or_else(|panic| {
+                let message = crate::error::panic_message(panic.as_ref());
+                tracing::error!(error = %message, "the job panicked");
+                failed(JobErrorCode::Internal, format!("the denoiser failed: {message}"))
+            });
         service.finish(claim, outcome);
     }
     tracing::debug!("worker stopped");
