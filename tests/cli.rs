@@ -112,7 +112,7 @@ fn bad_input_is_reported_by_name() {
         .unwrap();
     assert_eq!(res.status.code(), Some(1));
     let err = String::from_utf8_lossy(&res.stderr);
-    assert!(err.contains("bad.exr: invalid frame: missing channels: normal.R, normal.G, normal.B"), "{err}");
+    assert!(err.contains("bad.exr: invalid frame: missing channels: normal.G (the file has: "), "{err}");
 }
 
 #[test]

@@ -19,9 +19,13 @@ pub struct HeaderInfo {
 }
 
 /// Reads and checks the headers: size limit, deep data, subsampling, parts of different
-/// sizes, duplicate channels.
+/// sizes, duplicate channels, then the structural checks of the decoder (sorted channel
+/// names, a `chunkCount` that matches the data window, well-formed attributes), so that a
+/// header the decoder would refuse is refused here, before any pixel is read.
 pub fn read_header(reader: impl std::io::Read, limits: &Limits) -> std::result::Result<HeaderInfo, FrameError> {
-    let meta = contain(|| exr::meta::MetaData::read_from_buffered(reader, false))?.map_err(map_exr_error)?;
+    // Pedantic, as the decoder reads headers (`exr` reads them pedantically when it decodes
+    // an image non-pedantically).
+    let meta = contain(|| exr::meta::MetaData::read_from_buffered(reader, true))?.map_err(map_exr_error)?;
     let mut size: Option<(String, (usize, usize))> = None;
     let mut channels: Vec<String> = Vec::new();
     for header in meta.headers.iter() {
@@ -63,7 +67,40 @@ pub fn read_header(reader: impl std::io::Read, limits: &Limits) -> std::result::
     if width == 0 || height == 0 {
         return Err(FrameError::Empty { width, height });
     }
+    contain(|| exr::meta::MetaData::validate(&meta.headers, false))?.map_err(map_exr_error)?;
     Ok(HeaderInfo { width, height, channels })
+}
+
+/// Checks that the offset tables point at every block exactly once. The decoder reads the
+/// chunks the tables point at and leaves the pixels of a block no entry points at as zeros,
+/// so a table that lists one chunk twice would decode into a frame with a hole.
+fn check_chunks(bytes: &[u8]) -> std::result::Result<(), FrameError> {
+    use exr::block::chunk::CompressedBlock;
+    let reader = exr::block::read(Cursor::new(bytes), false).map_err(map_exr_error)?;
+    let chunks = reader.filter_chunks(false, |_, _, _| true).map_err(map_exr_error)?;
+    let mut seen = std::collections::HashSet::new();
+    for chunk in chunks {
+        let chunk = chunk.map_err(map_exr_error)?;
+        let (block, what) = match chunk.compressed_block {
+            CompressedBlock::ScanLine(b) => {
+                ((b.y_coordinate as i64, 0, 0, 0), format!("scan lines from y = {}", b.y_coordinate))
+            }
+            CompressedBlock::Tile(t) => {
+                let (i, l) = (t.coordinates.tile_index, t.coordinates.level_index);
+                ((i.0 as i64, i.1, l.0, l.1), format!("tile ({}, {}) of level ({}, {})", i.0, i.1, l.0, l.1))
+            }
+            CompressedBlock::DeepScanLine(_) | CompressedBlock::DeepTile(_) => {
+                return Err(FrameError::Deep(chunk.layer_index.to_string()))
+            }
+        };
+        if !seen.insert((chunk.layer_index, block)) {
+            return Err(FrameError::Corrupt(format!(
+                "two chunks of part {} hold the {what}, so another block has no data (corrupt offset table)",
+                chunk.layer_index
+            )));
+        }
+    }
+    Ok(())
 }
 
 /// Reads every channel of every part: `(width, height, [(full name, plane)])`.
@@ -75,6 +112,7 @@ pub(super) fn read_planes(
     limits: &Limits,
 ) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
     let HeaderInfo { width, height, .. } = read_header(Cursor::new(bytes), limits)?;
+    contain(|| check_chunks(bytes))??;
 
     let image = contain(|| {
         read()
@@ -130,15 +168,36 @@ fn full_name(part: &str, channel: &str) -> String {
     }
 }
 
+/// The `exr` crate's message for a read past the end of the input.
+const EXR_MISSING_BYTES: &str = "reference to missing bytes";
+
 fn map_exr_error(e: exr::error::Error) -> FrameError {
     use exr::error::Error as E;
     match e {
         E::Io(io) if io.kind() == std::io::ErrorKind::UnexpectedEof => FrameError::Truncated(io.to_string()),
         E::Io(io) => FrameError::Corrupt(io.to_string()),
-        E::Invalid(msg) => FrameError::Corrupt(msg.to_string()),
+        // `exr` reports every unexpected end of input this way.
+        E::Invalid(msg) if msg == EXR_MISSING_BYTES => {
+            FrameError::Truncated("the file ends before all the data its header and offset tables declare".into())
+        }
+        E::Invalid(msg) => FrameError::Corrupt(clearer_exr_message(&msg)),
         E::NotSupported(msg) => FrameError::Unsupported(msg.to_string()),
         E::Aborted => FrameError::Corrupt("reading was aborted".into()),
     }
+}
+
+/// Says what some terse `exr` messages mean (the original follows in parentheses).
+fn clearer_exr_message(msg: &str) -> String {
+    let meaning = match msg {
+        "file identifier missing" => "the file does not start with the OpenEXR magic number 76 2f 31 01",
+        "scan line block sample count" | "tile block sample count" => {
+            "a chunk declares more bytes than its block of pixels can hold"
+        }
+        "attribute size" => "an attribute declares a negative size",
+        "text too long" => "a name in the header is too long or not terminated",
+        _ => return msg.to_string(),
+    };
+    format!("{meaning} ({msg})")
 }
 
 /// One RGB layer of an output file: `prefix` `""` writes `R,G,B`, `"diffuse"` writes

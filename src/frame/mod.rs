@@ -216,21 +216,34 @@ impl Frame {
 }
 
 /// Checks that channels `names` provide every buffer of `required`; the error lists the
-/// canonical names of what is missing and every name the file has.
+/// names of what is missing and every name the file has.
 pub fn check_required(names: &[&str], required: &[Buffer]) -> Result<(), FrameError> {
     let all = renderers::with_derived(names);
-    let resolved = layout::resolve(&all.iter().map(String::as_str).collect::<Vec<_>>());
-    let missing: Vec<String> = required
-        .iter()
-        .filter(|b| resolved[**b as usize].is_none())
-        .flat_map(|b| layout::spec(*b).alternatives[0].iter().map(|s| s.to_string()))
-        .collect();
+    let all: Vec<&str> = all.iter().map(String::as_str).collect();
+    let resolved = layout::resolve(&all);
+    let missing: Vec<String> =
+        required.iter().filter(|b| resolved[**b as usize].is_none()).flat_map(|b| missing_of(&all, *b)).collect();
     if missing.is_empty() {
         return Ok(());
     }
     let mut available: Vec<String> = names.iter().map(|s| s.to_string()).collect();
     available.sort();
     Err(FrameError::MissingChannels { missing, available })
+}
+
+/// The channels `names` lacks for `buffer`: the rest of its most complete spelling (a file
+/// with `diffuse.R` and `diffuse.B` lacks `diffuse.G`), or all of the preferred spelling
+/// when the file has none of them.
+fn missing_of(names: &[&str], buffer: Buffer) -> Vec<String> {
+    let alternatives = layout::spec(buffer).alternatives;
+    let present = |alt: &[&str]| alt.iter().filter(|n| names.contains(n)).count();
+    let mut best = alternatives[0];
+    for alt in &alternatives[1..] {
+        if present(alt) > present(best) {
+            best = alt;
+        }
+    }
+    best.iter().filter(|n| !names.contains(n)).map(|n| n.to_string()).collect()
 }
 
 /// The buffers a reference is read from: `R,G,B` when present, else diffuse and specular.

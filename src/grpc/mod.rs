@@ -146,6 +146,7 @@ pub fn job_pb(s: &JobStatus) -> pb::Job {
             total: t.total,
         }),
         error: r.error.as_ref().map(|e| pb::JobError { code: e.code.name().to_string(), message: e.message.clone() }),
+        missing_variances: r.missing_variances.clone(),
         metrics: r.metrics.map(|m| {
             let q = |q: crate::jobs::QualityMetrics| pb::QualityMetrics {
                 relmse: q.relmse,

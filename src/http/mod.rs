@@ -218,6 +218,7 @@ pub fn job_json(s: &JobStatus) -> Value {
         "timings_ms": r.timings,
         "metrics": r.metrics,
         "sanitized": r.sanitized,
+        "missing_variances": r.missing_variances,
         "error": r.error,
         "result_bytes": r.result_bytes,
         "created_at": rfc3339(r.created_at_ms),
@@ -270,15 +271,25 @@ fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions,
     Ok(JobOptions {
         priority,
         layers,
-        idempotency_key: q.idempotency_key.or_else(|| idempotency_header(headers)),
+        idempotency_key: match q.idempotency_key {
+            Some(key) => Some(key),
+            None => idempotency_header(headers)?,
+        },
         label: q.label,
         variant,
         deadline_seconds: q.deadline_seconds,
     })
 }
 
-fn idempotency_header(headers: &HeaderMap) -> Option<String> {
-    headers.get("idempotency-key").and_then(|v| v.to_str().ok()).map(str::to_owned)
+/// The `Idempotency-Key` header; one that is not visible ASCII is refused rather than
+/// ignored (ignoring it would turn a retry into a second job).
+fn idempotency_header(headers: &HeaderMap) -> Result<Option<String>, Error> {
+    match headers.get("idempotency-key") {
+        None => Ok(None),
+        Some(v) => v.to_str().map(|s| Some(s.to_owned())).map_err(|_| {
+            Error::BadRequest("the Idempotency-Key header must be visible ASCII (letters, digits, punctuation)".into())
+        }),
+    }
 }
 
 fn accepted(status: &JobStatus, replayed: bool) -> Response {
@@ -423,7 +434,7 @@ async fn submit_multipart(
     mut options: JobOptions,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let header_key = idempotency_header(request.headers());
+    let header_key = idempotency_header(request.headers())?;
     let mut multipart = Multipart::from_request(request, &())
         .await
         .map_err(|e| Error::BadRequest(format!("bad multipart body: {}", e.body_text())))?;

@@ -97,6 +97,8 @@ impl Layer {
 
 /// Largest accepted label and idempotency key, in bytes.
 pub const MAX_LABEL_BYTES: usize = 256;
+/// Longest accepted job deadline.
+pub const MAX_DEADLINE_SECONDS: u64 = 30 * 24 * 3600;
 
 /// What a client asks for when it submits a frame.
 #[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
@@ -134,6 +136,9 @@ impl JobOptions {
         self.layers = layers;
         if self.deadline_seconds == Some(0) {
             self.deadline_seconds = None;
+        }
+        if let Some(s) = self.deadline_seconds.filter(|s| *s > MAX_DEADLINE_SECONDS) {
+            return Err(format!("deadline_seconds is {s}, at most {MAX_DEADLINE_SECONDS} (30 days) is accepted"));
         }
         Ok(self)
     }

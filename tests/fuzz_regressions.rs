@@ -1,0 +1,49 @@
+//! Replays the kept fuzz corpus and every crash reproducer (fuzz/corpus/<target>,
+//! fuzz/regressions/<target>) through the same harnesses `cargo fuzz` runs, on stable Rust,
+//! so that what the fuzzer once found stays fixed (docs/reliability.md).
+
+#[path = "../fuzz/src/harness.rs"]
+#[allow(dead_code)]
+mod harness;
+
+use std::path::PathBuf;
+
+fn inputs(target: &str) -> Vec<(PathBuf, Vec<u8>)> {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fuzz");
+    let mut out = Vec::new();
+    for dir in [root.join("corpus").join(target), root.join("regressions").join(target)] {
+        let Ok(entries) = std::fs::read_dir(&dir) else { continue };
+        for entry in entries.flatten() {
+            let path = entry.path();
+            let bytes = std::fs::read(&path).unwrap();
+            out.push((path, bytes));
+        }
+    }
+    out.sort();
+    out
+}
+
+fn replay(target: &str, run: fn(&[u8])) {
+    let inputs = inputs(target);
+    assert!(inputs.len() >= 20, "{target}: only {} kept inputs", inputs.len());
+    for (path, bytes) in &inputs {
+        let outcome = std::panic::catch_unwind(|| run(bytes));
+        assert!(outcome.is_ok(), "{target}: {} fails again", path.display());
+    }
+    eprintln!("{target}: {} inputs replayed", inputs.len());
+}
+
+#[test]
+fn exr_frame_corpus_replays_clean() {
+    replay("exr_frame", harness::exr_frame_bytes);
+}
+
+#[test]
+fn http_submit_corpus_replays_clean() {
+    replay("http_submit", harness::http_submit_bytes);
+}
+
+#[test]
+fn grpc_chunks_corpus_replays_clean() {
+    replay("grpc_chunks", harness::grpc_chunks_bytes);
+}
