@@ -5,7 +5,7 @@ export MCDENOISE_HOME
 export ORT_DYLIB_PATH ?= $(MCDENOISE_HOME)/lib/libonnxruntime.so.1.31.1
 export MCDENOISE_BIN := $(CURDIR)/target/release/mcdenoise
 
-.PHONY: setup build test serve train eval bench ablation
+.PHONY: setup build test serve train eval bench ablation reliability fuzz
 
 setup:
 	bash scripts/setup
@@ -84,3 +84,27 @@ ABLATION_STEPS ?= 600
 ablation: build
 	cd training && $(PY) -m mcdenoise_train.ablation --data $(abspath $(DATA)) --test-data $(abspath $(TEST_DATA)) \
 	  --out $(CURDIR)/runs/ablation --steps $(ABLATION_STEPS) --threads 1
+
+## Reliability (docs/reliability.md): the SIGKILL soak (KILLS restarts), the burst of 10x the
+## queue and the SIGTERM drain against the binary; figures in docs/results/reliability/.
+KILLS ?= 40
+reliability: build
+	MCDENOISE_SOAK_KILLS=$(KILLS) MCDENOISE_RELIABILITY_OUT=$(CURDIR)/docs/results/reliability \
+	  cargo test --release --locked --test soak -- --nocapture --test-threads 1
+	MCDENOISE_RELIABILITY_OUT=$(CURDIR)/docs/results/reliability \
+	  cargo test --release --locked --test bad_inputs -- --nocapture
+
+## Fuzzing (docs/reliability.md) with cargo fuzz on nightly Rust (`cargo install cargo-fuzz`):
+## each target for FUZZ_SECONDS, growing fuzz/corpus; crashes land in fuzz/regressions/<target>/,
+## which `make test` replays (tests/fuzz_regressions.rs). Minimise the corpus before committing
+## it: `make fuzz-cmin`.
+FUZZ_SECONDS ?= 600
+FUZZ_TARGETS ?= exr_frame http_submit grpc_chunks
+FUZZ_FLAGS = -max_len=65536 -rss_limit_mb=2048 -timeout=20 -print_final_stats=1
+fuzz: setup
+	cd fuzz && for t in $(FUZZ_TARGETS); do mkdir -p corpus/$$t regressions/$$t && \
+	  cargo +nightly fuzz run -s none $$t corpus/$$t -- $(FUZZ_FLAGS) -max_total_time=$(FUZZ_SECONDS) \
+	    -artifact_prefix=regressions/$$t/ || exit 1; done
+
+fuzz-cmin: setup
+	cd fuzz && for t in $(FUZZ_TARGETS); do cargo +nightly fuzz cmin -s none $$t corpus/$$t -- -max_len=65536 || exit 1; done

@@ -1094,6 +1094,20 @@ async fn every_bad_input_gets_its_specific_error_and_the_daemon_keeps_serving() 
         t.elapsed().as_secs_f64()
     );
     assert!(failures.is_empty(), "{} problems:\n{}", failures.len(), failures.join("\n"));
+    if let Ok(dir) = std::env::var("MCDENOISE_RELIABILITY_OUT") {
+        let figures = serde_json::json!({
+            "cases": cases.len(),
+            "rejected_http": count("rejected over HTTP"),
+            "rejected_grpc": count("rejected over gRPC"),
+            "accepted_then_failed": count("accepted then failed"),
+            "succeeded": count("succeeded"),
+            "known_defects": known_defects,
+            "good_jobs_after_cases_succeeded": cases.len(),
+            "seconds": t.elapsed().as_secs_f64(),
+        });
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(format!("{dir}/bad-inputs.json"), serde_json::to_string_pretty(&figures).unwrap()).unwrap();
+    }
 }
 
 #[test]

@@ -74,8 +74,8 @@ async fn http_round_trip_streams_progress_then_result_and_metrics() {
     assert_eq!((out.width, out.height), (w, h));
     let expected = engine(32).denoise(&frame_of(&input), None, &mut |_| true).unwrap();
     let got = out.color();
-    for c in 0..3 {
-        assert!(max_rel_diff(&got[c], &expected.color[c]) < 1e-4, "channel {c}");
+    for (c, (got, want)) in got.iter().zip(&expected.color).enumerate() {
+        assert!(max_rel_diff(got, want) < 1e-4, "channel {c}");
     }
     let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(&exr), false).unwrap();
     let names: Vec<String> = meta.headers[0].channels.list.iter().map(|c| c.name.to_string()).collect();
