@@ -318,6 +318,13 @@ async fn both_listeners_speak_tls_when_given_a_certificate() {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     assert!(d.http.get("/livez").await.is_err(), "plain HTTP is refused");
+    // A client that opens connections and never starts its handshake holds up no other.
+    let mut stalled = Vec::new();
+    for _ in 0..8 {
+        stalled.push(tokio::net::TcpStream::connect(http_addr).await.unwrap());
+    }
+    assert_eq!(https_get(http_addr, &ca, "/livez").await.unwrap(), "HTTP/1.1 200 OK");
+    drop(stalled);
     let other_ca = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap().cert.pem();
     assert!(https_get(http_addr, &other_ca, "/livez").await.is_err(), "the client checks the certificate");
 

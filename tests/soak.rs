@@ -5,7 +5,9 @@
 //!
 //! Knobs (environment): `MCDENOISE_SOAK_KILLS` (restarts after SIGKILL, default 6),
 //! `MCDENOISE_SOAK_SEED` (default 1), `MCDENOISE_BURST_FACTOR` (burst size over the queue
-//! capacity, default 10), `MCDENOISE_RELIABILITY_OUT` (a directory for the JSON figures).
+//! capacity, default 10), `MCDENOISE_BURST_MODELS` (models of the burst's daemon, default the
+//! tiny test models), `MCDENOISE_BURST_FRAME` (side of the burst's square frames, default
+//! 48), `MCDENOISE_RELIABILITY_OUT` (a directory for the JSON figures).
 
 mod common;
 mod daemon_common;
@@ -284,19 +286,37 @@ fn peak_rss_mb(pid: u32) -> f64 {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers() {
     let factor = knob("MCDENOISE_BURST_FACTOR", 10) as usize;
+    let side = knob("MCDENOISE_BURST_FRAME", 48) as usize;
+    let models =
+        std::env::var("MCDENOISE_BURST_MODELS").unwrap_or_else(|_| common::tiny_models().display().to_string());
     let capacity = 8usize;
     let nodes: Vec<String> = (0..16).map(|i| format!("node-{i}")).collect();
     let dir = tempfile::tempdir().unwrap();
     let cap = capacity.to_string();
     let tokens = nodes.join(",");
+    // With the tiny models each tile is slowed down so that the burst meets busy workers.
+    let (tile, delay) = if models.contains("fixtures") { ("16", "10ms") } else { ("256", "0s") };
     let p = spawn_daemon(
         dir.path(),
-        &["--queue-capacity", &cap, "--auth-token", &tokens, "--tile", "16", "--debug-tile-delay", "10ms"],
+        &[
+            "--queue-capacity",
+            &cap,
+            "--auth-token",
+            &tokens,
+            "--models",
+            &models,
+            "--tile",
+            tile,
+            "--debug-tile-delay",
+            delay,
+            "--threads-per-worker",
+            "2",
+        ],
     );
     let clients: Vec<HttpClient> = nodes.iter().map(|t| HttpClient::new(&p.http, Some(t))).collect();
     wait_ready(&clients[0]).await;
     let rss_idle = peak_rss_mb(p.child.id());
-    let exr = frame(48, 32);
+    let exr = frame(side, side);
 
     // A job to poll while the burst is served.
     let (_, probe) = clients[0]
@@ -392,6 +412,8 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
         "overload",
         &json!({
             "queue_capacity": capacity,
+            "models": models,
+            "frame": format!("{side}x{side}"),
             "clients": nodes.len(),
             "burst": burst,
             "accepted": accepted.len(),
