@@ -164,19 +164,6 @@ async fn tokens_never_reach_the_logs_or_the_job_store() {
     }
 }
 
-fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
-    let mut out = Vec::new();
-    for entry in std::fs::read_dir(dir).unwrap().flatten() {
-        let path = entry.path();
-        if path.is_dir() {
-            out.extend(walk(&path));
-        } else {
-            out.push(path);
-        }
-    }
-    out
-}
-
 /// A request whose body never ends until the returned sender is dropped.
 fn stalled_upload(
     client: &HttpClient,
