@@ -132,3 +132,21 @@ fn a_missing_onnx_runtime_is_a_clear_error() {
     assert!(err.contains("ONNX Runtime library not found") && err.contains("scripts/setup"), "{err}");
     assert!(!err.contains("panicked"), "{err}");
 }
+
+#[test]
+fn every_serve_option_is_documented_in_the_api_reference() {
+    use clap::CommandFactory;
+    let doc = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/api.md")).unwrap();
+    let cmd = mcdenoise::config::ServeArgs::command();
+    let mut checked = 0;
+    for arg in cmd.get_arguments().filter(|a| !a.is_hide_set()) {
+        let Some(long) = arg.get_long() else { continue };
+        assert!(doc.contains(&format!("`--{long}")), "--{long} is missing from docs/api.md");
+        if let Some(env) = arg.get_env() {
+            let env = env.to_string_lossy();
+            assert!(doc.contains(env.as_ref()), "{env} is missing from docs/api.md");
+        }
+        checked += 1;
+    }
+    assert!(checked >= 20, "{checked}");
+}
