@@ -396,7 +396,7 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     report(
-        "overload",
+        if models.contains("fixtures") { "overload" } else { "overload-shipped-models" },
         &json!({
             "queue_capacity": capacity,
             "models": models,
