@@ -100,7 +100,7 @@ reliability: build
 ## it: `make fuzz-cmin`.
 FUZZ_SECONDS ?= 600
 FUZZ_TARGETS ?= exr_frame http_submit grpc_chunks
-FUZZ_FLAGS = -max_len=65536 -rss_limit_mb=2048 -timeout=20 -print_final_stats=1
+FUZZ_FLAGS = -max_len=65536 -rss_limit_mb=2048 -malloc_limit_mb=512 -timeout=20 -print_final_stats=1
 fuzz: setup
 	cd fuzz && for t in $(FUZZ_TARGETS); do mkdir -p corpus/$$t regressions/$$t && \
 	  cargo +nightly fuzz run -s none $$t corpus/$$t -- $(FUZZ_FLAGS) -max_total_time=$(FUZZ_SECONDS) \
