@@ -682,15 +682,8 @@ impl Size {
 #[derive(Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 enum Expect {
-    /// Refused over HTTP: status, `error.code`, message; with `connection_close`, the answer
-    /// must say `Connection: close` (the daemon closes a connection whose body it left unread).
-    HttpError {
-        status: u16,
-        code: String,
-        message: String,
-        #[serde(default)]
-        connection_close: bool,
-    },
+    /// Refused over HTTP: status, `error.code`, message.
+    HttpError { status: u16, code: String, message: String },
     /// Refused over gRPC: the code as tonic spells it (`InvalidArgument`), message.
     GrpcError { code: String, message: String },
     /// Accepted (the header is valid), then the job fails: `error.code`, message.
@@ -764,8 +757,8 @@ fn files_of(case: &Case) -> Vec<String> {
 
 /// What the daemon answered to a submission.
 enum Answer {
-    /// Status, JSON body, whether the answer says `Connection: close`.
-    Http(StatusCode, Value, bool),
+    /// Status, JSON body.
+    Http(StatusCode, Value),
     /// The job id, or the refusal.
     Grpc(Result<String, Box<tonic::Status>>),
     /// No answer: the connection failed or the call hung.
@@ -776,7 +769,7 @@ impl Answer {
     /// The job the submission created, if it created one.
     fn accepted(&self) -> Option<String> {
         match self {
-            Answer::Http(StatusCode::ACCEPTED, job, _) => job["id"].as_str().map(str::to_owned),
+            Answer::Http(StatusCode::ACCEPTED, job) => job["id"].as_str().map(str::to_owned),
             Answer::Grpc(Ok(id)) => Some(id.clone()),
             _ => None,
         }
@@ -784,7 +777,7 @@ impl Answer {
 
     fn describe(&self) -> String {
         match self {
-            Answer::Http(status, body, _) => format!("HTTP {status} {body}"),
+            Answer::Http(status, body) => format!("HTTP {status} {body}"),
             Answer::Grpc(Ok(id)) => format!("gRPC OK, job {id}"),
             Answer::Grpc(Err(s)) => format!("gRPC {:?}: {}", s.code(), s.message()),
             Answer::None(why) => format!("no answer: {why}"),
@@ -843,9 +836,8 @@ async fn http_answer(response: anyhow::Result<hyper::Response<hyper::body::Incom
         Ok(r) => r,
         Err(e) => return Answer::None(e.to_string()),
     };
-    let close = response.headers().get("connection").is_some_and(|v| v.as_bytes().eq_ignore_ascii_case(b"close"));
     match read_json(response).await {
-        Ok((status, json)) => Answer::Http(status, json, close),
+        Ok((status, json)) => Answer::Http(status, json),
         Err(e) => Answer::None(format!("reading the answer: {e}")),
     }
 }
@@ -940,13 +932,10 @@ async fn check_result(d: &Daemon, job: &Value) -> Result<(), String> {
 
 async fn check(d: &Daemon, expect: &Expect, answer: &Answer) -> Result<(), String> {
     match (expect, answer) {
-        (Expect::HttpError { status, code, message, connection_close }, Answer::Http(got, body, close)) => {
+        (Expect::HttpError { status, code, message }, Answer::Http(got, body)) => {
             expect_eq("the status", got.as_u16(), *status)?;
             expect_eq("error.code", body["error"]["code"].as_str(), Some(code.as_str()))?;
             expect_contains("error.message", body["error"]["message"].as_str().unwrap_or_default(), message)?;
-            if *connection_close {
-                expect_eq("`Connection: close` in the answer", *close, true)?;
-            }
             Ok(())
         }
         (Expect::GrpcError { code, message }, Answer::Grpc(Err(s))) => {
