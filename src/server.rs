@@ -54,6 +54,8 @@ impl Server {
         let http_addr = http.local_addr()?;
         let grpc_addr = grpc.local_addr()?;
         let telemetry = Arc::new(Telemetry::new());
+        // Before the job store and the workers: a bad certificate stops the start cleanly.
+        let tls = crate::tls::Tls::load(args.tls_cert.as_deref(), args.tls_key.as_deref())?;
         let settings = Settings::from_args(&args);
         let data_dir = args.data_dir.clone();
         let (service, workers) = tokio::task::spawn_blocking(move || JobService::start(&data_dir, settings, telemetry))
@@ -63,15 +65,14 @@ impl Server {
         let trigger = CancellationToken::new();
         let stop = CancellationToken::new();
         let tokens = Arc::new(crate::auth::Tokens::new(&args.auth_tokens));
-        let tls = crate::tls::TlsFiles::from_options(args.tls_cert.as_deref(), args.tls_key.as_deref())?;
         let state = crate::http::AppState { service: service.clone(), tokens: tokens.clone(), shutdown: stop.clone() };
         let app = crate::http::router(state).into_make_service_with_connect_info::<crate::http::Peer>();
         let http_task = match &tls {
             None => tokio::spawn(
                 axum::serve(http, app).with_graceful_shutdown(stop.clone().cancelled_owned()).into_future(),
             ),
-            Some(files) => {
-                let listener = crate::tls::TlsListener::new(http, files.http_config()?)?;
+            Some(tls) => {
+                let listener = crate::tls::TlsListener::new(http, tls.http.clone())?;
                 tokio::spawn(
                     axum::serve(listener, app).with_graceful_shutdown(stop.clone().cancelled_owned()).into_future(),
                 )

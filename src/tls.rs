@@ -6,7 +6,7 @@
 //! never finishes its handshake holds up no one) and hands finished connections to axum.
 
 use std::net::SocketAddr;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -24,56 +24,46 @@ const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Handshakes in progress at once; further connections wait in the kernel's backlog.
 const MAX_HANDSHAKES: usize = 256;
 
-/// The certificate chain and key, as PEM files.
-#[derive(Clone, Debug)]
-pub struct TlsFiles {
-    pub cert: PathBuf,
-    pub key: PathBuf,
+/// The certificate chain and key, read and checked once at startup for both listeners.
+#[derive(Clone)]
+pub struct Tls {
+    /// The PEM texts, for tonic's `Identity` (gRPC).
+    pub cert_pem: Vec<u8>,
+    pub key_pem: Vec<u8>,
+    /// The rustls configuration of the HTTP listener (ALPN: h2, http/1.1).
+    pub http: Arc<ServerConfig>,
 }
 
-impl TlsFiles {
-    /// Both or neither: one without the other is a configuration error.
-    pub fn from_options(cert: Option<&Path>, key: Option<&Path>) -> anyhow::Result<Option<TlsFiles>> {
-        match (cert, key) {
-            (None, None) => Ok(None),
-            (Some(cert), Some(key)) => Ok(Some(TlsFiles { cert: cert.to_owned(), key: key.to_owned() })),
+impl Tls {
+    /// Both files or neither: one without the other is a configuration error. Reading
+    /// fails, naming the file, when a file is unreadable, holds no PEM certificate or key,
+    /// or when the key does not go with the certificate.
+    pub fn load(cert: Option<&Path>, key: Option<&Path>) -> anyhow::Result<Option<Tls>> {
+        let (cert, key) = match (cert, key) {
+            (None, None) => return Ok(None),
+            (Some(cert), Some(key)) => (cert, key),
             _ => bail!("--tls-cert and --tls-key go together: give both or neither"),
-        }
-    }
-
-    /// The PEM texts (for tonic's `Identity`), checked to parse.
-    pub fn read_pem(&self) -> anyhow::Result<(Vec<u8>, Vec<u8>)> {
-        let cert = std::fs::read(&self.cert).with_context(|| format!("cannot read {}", self.cert.display()))?;
-        let key = std::fs::read(&self.key).with_context(|| format!("cannot read {}", self.key.display()))?;
-        self.parse(&cert, &key)?;
-        Ok((cert, key))
-    }
-
-    fn parse(&self, cert: &[u8], key: &[u8]) -> anyhow::Result<(Vec<CertificateDer<'static>>, PrivateKeyDer<'static>)> {
-        let chain: Vec<CertificateDer<'static>> = CertificateDer::pem_slice_iter(cert)
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("{}: not a PEM certificate chain", self.cert.display()))?;
+        };
+        let cert_pem = std::fs::read(cert).with_context(|| format!("cannot read {}", cert.display()))?;
+        let key_pem = std::fs::read(key).with_context(|| format!("cannot read {}", key.display()))?;
+        let chain: Vec<CertificateDer<'static>> =
+            CertificateDer::pem_slice_iter(&cert_pem)
+                .collect::<Result<_, _>>()
+                .with_context(|| format!("{}: not a PEM certificate chain", cert.display()))?;
         if chain.is_empty() {
-            bail!("{}: no certificate found (expected PEM `BEGIN CERTIFICATE` blocks)", self.cert.display());
+            bail!("{}: no certificate found (expected PEM `BEGIN CERTIFICATE` blocks)", cert.display());
         }
-        let key = PrivateKeyDer::from_pem_slice(key)
-            .with_context(|| format!("{}: no PEM private key found (PKCS#8, PKCS#1 or SEC1)", self.key.display()))?;
-        Ok((chain, key))
-    }
-
-    /// The rustls configuration of the HTTP listener (ALPN: h2, http/1.1).
-    pub fn http_config(&self) -> anyhow::Result<Arc<ServerConfig>> {
-        let (cert, key) = self.read_pem()?;
-        let (chain, key) = self.parse(&cert, &key)?;
+        let private_key = PrivateKeyDer::from_pem_slice(&key_pem)
+            .with_context(|| format!("{}: no PEM private key found (PKCS#8, PKCS#1 or SEC1)", key.display()))?;
         let provider = Arc::new(rustls::crypto::ring::default_provider());
-        let mut config = ServerConfig::builder_with_provider(provider)
+        let mut http = ServerConfig::builder_with_provider(provider)
             .with_safe_default_protocol_versions()
             .context("TLS protocol versions")?
             .with_no_client_auth()
-            .with_single_cert(chain, key)
-            .with_context(|| format!("{} does not go with {}", self.key.display(), self.cert.display()))?;
-        config.alpn_protocols = vec![b"h2".to_vec(), b"http/1.1".to_vec()];
-        Ok(Arc::new(config))
+            .with_single_cert(chain, private_key)
+            .with_context(|| format!("{} does not go with {}", key.display(), cert.display()))?;
+        http.alpn_protocols = vec![b"h2".to_vec(), b"http/1.1".to_vec()];
+        Ok(Some(Tls { cert_pem, key_pem, http: Arc::new(http) }))
     }
 }
 

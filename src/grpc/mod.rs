@@ -494,7 +494,7 @@ pub async fn serve(
     listener: tokio::net::TcpListener,
     service: JobService,
     tokens: Arc<Tokens>,
-    tls: Option<crate::tls::TlsFiles>,
+    tls: Option<crate::tls::Tls>,
     shutdown: CancellationToken,
 ) -> anyhow::Result<()> {
     let auth = Auth { tokens };
@@ -528,9 +528,8 @@ pub async fn serve(
 
     let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
     let mut builder = tonic::transport::Server::builder();
-    if let Some(files) = tls {
-        let (cert, key) = files.read_pem()?;
-        let identity = tonic::transport::Identity::from_pem(cert, key);
+    if let Some(tls) = tls {
+        let identity = tonic::transport::Identity::from_pem(tls.cert_pem, tls.key_pem);
         builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
     }
     let result = builder
