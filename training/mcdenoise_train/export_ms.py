@@ -1,0 +1,205 @@
+"""ONNX export in model contract v2 (docs/model-contract.md, "Model contract v2").
+
+`export_onnx(model, path, variant)` writes one `MSNet` as `<variant>/model.onnx`: inputs
+`diffuse`, `specular` `[N,10,H,W]` and `features` `[N,C,H,W]`; outputs `kernel_<l>`
+`[N,2k²,H/2^l,W/2^l]` and `blend_<l>` `[N,2,H/2^l,W/2^l]`; float32, N/H/W dynamic, opset
+17, the `mcdenoise.*` metadata. The file is checked (onnx.checker, op set, shapes, exact
+metadata) and run in onnxruntime on a shape other than the traced one; the export fails
+unless max |ort - torch| <= 1e-4 * max(1, max |torch|) for every output.
+
+A `nocov` model can be cut from a network trained with the covariance channels zeroed
+(`nocov_from_full`): their input weights are dropped, which changes nothing for inputs
+without covariance.
+
+    python -m mcdenoise_train.export_ms --random --seed 0 --variants full,nocov --out DIR [--ext-width 8 ...]
+    python -m mcdenoise_train.export_ms --checkpoint best.pt --out DIR
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import io
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from .contract import COLOR_CHANNELS, FEATURES_FULL, NOCOV_INDICES, feature_names, variant_for
+from .export import read_metadata as read_metadata_v2
+from .msnet import DEFAULT, MSNet
+
+CONTRACT = 2
+OPSET = 17
+ALLOWED_OPS = frozenset({"Conv", "Relu", "Add", "Concat", "MaxPool", "Resize", "Sign", "Abs", "Log", "Mul", "Constant"})
+_TRACE_HW = (32, 48)
+_VERIFY_SHAPE = (2, 48, 80)
+
+
+def output_names(levels: int) -> list[str]:
+    return [f"kernel_{l}" for l in range(levels)] + [f"blend_{l}" for l in range(levels - 1)]
+
+
+def metadata_for(model: MSNet, variant: str) -> dict[str, str]:
+    return {
+        "mcdenoise.contract": str(CONTRACT),
+        "mcdenoise.variant": variant,
+        "mcdenoise.features": ",".join(feature_names(variant_for(model.in_features))),
+        "mcdenoise.kernel_size": str(model.kernel_size),
+        "mcdenoise.levels": str(model.levels),
+        "mcdenoise.size_multiple": str(model.size_multiple),
+        "mcdenoise.receptive_radius": str(model.receptive_radius()),
+        "mcdenoise.flops_per_pixel": str(model.flops_per_pixel()),
+        "mcdenoise.architecture": model.description(),
+    }
+
+
+def nocov_from_full(model: MSNet) -> MSNet:
+    """The `nocov` network of a `full` one whose covariance inputs were trained as zeros:
+    the same weights without the covariance channels' input weights."""
+    if model.in_features != len(FEATURES_FULL):
+        raise ValueError(f"expected a full (28-feature) network, got {model.in_features} features")
+    cfg = dict(model.config)
+    cfg.pop("arch")
+    cfg["in_features"] = len(NOCOV_INDICES)
+    out = MSNet(**cfg)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    key = "feature_extractor.0.weight"
+    state[key] = state[key][:, list(NOCOV_INDICES)]
+    out.load_state_dict(state)
+    return out.eval()
+
+
+def _to_proto(model: MSNet) -> onnx.ModelProto:
+    h, w = _TRACE_HW
+    args = (torch.zeros(1, COLOR_CHANNELS, h, w), torch.zeros(1, COLOR_CHANNELS, h, w),
+            torch.zeros(1, model.in_features, h, w))
+    names = output_names(model.levels)
+    dyn = {0: "N", 2: "H", 3: "W"}
+    dynamic = {"diffuse": dyn, "specular": dyn, "features": dyn}
+    for l in range(model.levels):
+        dynamic[f"kernel_{l}"] = {0: "N", 2: f"H{l}", 3: f"W{l}"}
+        if l < model.levels - 1:
+            dynamic[f"blend_{l}"] = {0: "N", 2: f"H{l}", 3: f"W{l}"}
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(model, args, buf, dynamo=False, input_names=["diffuse", "specular", "features"],
+                          output_names=names, dynamic_axes=dynamic, opset_version=OPSET, do_constant_folding=True)
+    proto = onnx.load_from_string(buf.getvalue())
+    from .export import _drop_initializer_identities
+
+    _drop_initializer_identities(proto.graph)
+    return proto
+
+
+def _check_graph(proto: onnx.ModelProto, model: MSNet) -> None:
+    onnx.checker.check_model(proto, full_check=True)
+    ops = {n.op_type for n in proto.graph.node}
+    if not ops <= ALLOWED_OPS:
+        raise RuntimeError(f"exported graph has unexpected ops {sorted(ops - ALLOWED_OPS)}")
+    inits = {i.name for i in proto.graph.initializer}
+    inputs = [(i.name, i.type.tensor_type.shape.dim[1].dim_value) for i in proto.graph.input if i.name not in inits]
+    expect = [("diffuse", COLOR_CHANNELS), ("specular", COLOR_CHANNELS), ("features", model.in_features)]
+    if inputs != expect:
+        raise RuntimeError(f"graph inputs {inputs}, expected {expect}")
+    taps = model.kernel_size ** 2
+    outputs = [(o.name, o.type.tensor_type.shape.dim[1].dim_value) for o in proto.graph.output]
+    want = [(f"kernel_{l}", 2 * taps) for l in range(model.levels)] + [(f"blend_{l}", 2) for l in range(model.levels - 1)]
+    if outputs != want:
+        raise RuntimeError(f"graph outputs {outputs}, expected {want}")
+
+
+def verify_onnx(path: str | os.PathLike, model: MSNet, seed: int = 0) -> float:
+    import onnxruntime as ort
+
+    n, h, w = _VERIFY_SHAPE
+    g = torch.Generator().manual_seed(seed)
+    d = torch.randn(n, COLOR_CHANNELS, h, w, generator=g)
+    s = torch.randn(n, COLOR_CHANNELS, h, w, generator=g)
+    f = torch.rand(n, model.in_features, h, w, generator=g)
+    with torch.no_grad():
+        ref = [t.numpy() for t in model(d, s, f)]
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    out = sess.run(output_names(model.levels), {"diffuse": d.numpy(), "specular": s.numpy(), "features": f.numpy()})
+    worst = 0.0
+    for name, o, r in zip(output_names(model.levels), out, ref):
+        if o.shape != r.shape:
+            raise RuntimeError(f"{path}: {name} is {o.shape} in onnxruntime, {r.shape} in torch")
+        diff = float(np.max(np.abs(o - r)))
+        if not diff <= 1e-4 * max(1.0, float(np.max(np.abs(r)))):
+            raise RuntimeError(f"{path}: {name} differs from torch by {diff:g}")
+        worst = max(worst, diff)
+    return worst
+
+
+def export_onnx(model: MSNet, path: str | os.PathLike, variant: str, verify: bool = True) -> onnx.ModelProto:
+    net = copy.deepcopy(model).cpu().float().eval()
+    proto = _to_proto(net)
+    del proto.metadata_props[:]
+    for k, v in metadata_for(net, variant).items():
+        proto.metadata_props.add(key=k, value=v)
+    proto.doc_string = f"mcdenoise contract v{CONTRACT} {variant}"
+    _check_graph(proto, net)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(proto, str(path))
+    if verify:
+        verify_onnx(path, net)
+    return proto
+
+
+def load_msnet(path: str | os.PathLike) -> MSNet:
+    """The network of a v2 checkpoint (`{"config": ..., "state_dict": ...}`), eval mode."""
+    ck = torch.load(path, map_location="cpu", weights_only=True)
+    cfg = dict(ck["config"])
+    cfg.pop("arch", None)
+    net = MSNet(**cfg)
+    net.load_state_dict(ck["state_dict"])
+    return net.eval()
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m mcdenoise_train.export_ms", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--random", action="store_true")
+    src.add_argument("--checkpoint", help="v2 checkpoint trained on full features (exports full and nocov)")
+    p.add_argument("--out", required=True, help="models directory (writes OUT/<variant>/model.onnx)")
+    p.add_argument("--variants", default="full,nocov")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ext-width", type=int, default=DEFAULT["ext_width"])
+    p.add_argument("--ext-blocks", type=int, default=DEFAULT["ext_blocks"])
+    p.add_argument("--enc", default=",".join(map(str, DEFAULT["enc"])))
+    p.add_argument("--dec", default=",".join(map(str, DEFAULT["dec"])))
+    p.add_argument("--kernel-size", type=int, default=DEFAULT["kernel_size"])
+    p.add_argument("--levels", type=int, default=DEFAULT["levels"])
+    p.add_argument("--head-gain", type=float, default=1.0, help="scale of the heads' weights (random models)")
+    a = p.parse_args(argv)
+    variants = [v for v in a.variants.split(",") if v]
+    if a.random:
+        torch.manual_seed(a.seed)
+        net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
+                    enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
+                    kernel_size=a.kernel_size, levels=a.levels).eval()
+        if a.head_gain != 1.0:
+            with torch.no_grad():
+                for h in [*net.kernel_heads, *net.blend_heads]:
+                    h.weight.mul_(a.head_gain)
+    else:
+        net = load_msnet(a.checkpoint)
+    for v in variants:
+        m = net if v == "full" else nocov_from_full(net)
+        path = Path(a.out) / v / "model.onnx"
+        export_onnx(m, path, v)
+        print(f"{path}: {path.stat().st_size} bytes, {m.param_count()} params, {m.flops_per_pixel()} FLOP/px, "
+              f"receptive radius {m.receptive_radius()}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
+

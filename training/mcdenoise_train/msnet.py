@@ -1,0 +1,228 @@
+"""The production denoiser: multi-scale kernel prediction on a U-Net trunk (contract v2).
+
+One `MSNet` serves both components. It keeps the ideas of Lin et al. 2020 — separate
+residual extractors for the color (both components' 10-channel tensors) and for the
+auxiliary features (normal, albedo, depth, light-transport covariance, their variances and
+gradients) at full resolution, kernels that filter the preprocessed noisy color, the
+diffuse/specular split — and moves most of the work to low resolution, where a U-Net sees
+far more context for the same cost (Vogels et al. 2018; RenderKit/oidn's U-Nets):
+
+    diffuse [N,10,H,W], specular [N,10,H,W] -> color extractor (conv, residual blocks)  \\
+    features [N,C,H,W]                      -> feature extractor (conv, residual blocks) -> concat = level 0
+    level l -> maxpool 2x2 -> two 3x3 convs -> level l+1            (encoder, l = 0 … L-2)
+    level l+1 -> nearest x2 -> concat skip l -> two 3x3 convs        (decoder, l = L-2 … 0)
+    at every level: a 1x1 head -> kernel logits [N, 2k², H/2^l, W/2^l] (diffuse taps, then
+    specular taps) and, below the coarsest level, blend logits [N, 2, H/2^l, W/2^l]
+
+`recon_ms.py` turns these into the filtered color (docs/model-contract.md, "Model contract
+v2"): a k x k kernel at each pyramid level of the preprocessed color, blended coarse to
+fine. Inputs are compressed with `symlog` first, as in contract v1.
+
+`forward` returns `(kernel_0, …, kernel_{L-1}, blend_0, …, blend_{L-2})`, the graph's
+outputs in order. H and W must be multiples of `size_multiple` (2^(L-1)).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .contract import COLOR_CHANNELS, variant_for
+from .model import ResidualBlock, symlog
+
+COMPONENT_COUNT = 2
+
+
+def _conv(cin: int, cout: int, k: int = 3) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, k, padding=k // 2)
+
+
+class Extractor(nn.Sequential):
+    """conv3x3(cin -> width) then `blocks` residual blocks, at full resolution."""
+
+    def __init__(self, cin: int, width: int, blocks: int):
+        super().__init__(_conv(cin, width), *(ResidualBlock(width) for _ in range(blocks)))
+
+
+class _Pair(nn.Sequential):
+    """Two 3x3 convs with ReLUs."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__(_conv(cin, cout), nn.ReLU(), _conv(cout, cout), nn.ReLU())
+
+
+DEFAULT = dict(ext_width=16, ext_blocks=1, enc=(32, 48, 64, 80), dec=(32, 32, 48, 64), kernel_size=5, levels=5)
+
+
+class MSNet(nn.Module):
+    """Multi-scale kernel predictor for both components (see the module docstring).
+
+    `enc[i]` is the width of encoder level i+1, `dec[l]` of decoder level l (l = 0 … L-2);
+    level 0's encoder width is 2 * ext_width (the two extractors concatenated).
+    """
+
+    def __init__(
+        self,
+        in_features: int = 28,
+        ext_width: int = DEFAULT["ext_width"],
+        ext_blocks: int = DEFAULT["ext_blocks"],
+        enc: tuple[int, ...] | list[int] = DEFAULT["enc"],
+        dec: tuple[int, ...] | list[int] = DEFAULT["dec"],
+        kernel_size: int = DEFAULT["kernel_size"],
+        levels: int = DEFAULT["levels"],
+    ):
+        super().__init__()
+        variant_for(in_features)
+        enc, dec = list(enc)[: levels - 1], list(dec)[: levels - 1]
+        if levels < 1 or len(enc) != levels - 1 or len(dec) != levels - 1:
+            raise ValueError(f"levels={levels} needs {levels - 1} encoder and decoder widths, got enc={enc} dec={dec}")
+        if kernel_size < 1 or kernel_size % 2 == 0:
+            raise ValueError(f"kernel_size must be odd and positive, got {kernel_size}")
+        self.in_features, self.levels, self.kernel_size = in_features, levels, kernel_size
+        self.config = dict(
+            arch="msnet", in_features=in_features, ext_width=ext_width, ext_blocks=ext_blocks,
+            enc=enc, dec=dec, kernel_size=kernel_size, levels=levels,
+        )
+        taps = kernel_size * kernel_size
+        self.color_extractor = Extractor(COMPONENT_COUNT * COLOR_CHANNELS, ext_width, ext_blocks)
+        self.feature_extractor = Extractor(in_features, ext_width, ext_blocks)
+        widths = [2 * ext_width, *enc]  # encoder width per level
+        self.encoder = nn.ModuleList(_Pair(widths[l], widths[l + 1]) for l in range(levels - 1))
+        self.decoder = nn.ModuleList()
+        for l in range(levels - 1):
+            below = dec[l + 1] if l + 1 < levels - 1 else widths[levels - 1]
+            self.decoder.append(_Pair(below + widths[l], dec[l]))
+        head_in = [*dec, widths[levels - 1]]
+        self.kernel_heads = nn.ModuleList(_conv(head_in[l], COMPONENT_COUNT * taps, 1) for l in range(levels))
+        self.blend_heads = nn.ModuleList(_conv(head_in[l], COMPONENT_COUNT, 1) for l in range(levels - 1))
+        self.reset_parameters()
+
+    @property
+    def size_multiple(self) -> int:
+        return 1 << (self.levels - 1)
+
+    @property
+    def variant(self) -> str:
+        return variant_for(self.in_features)
+
+    def reset_parameters(self) -> None:
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_uniform_(m.weight, nonlinearity="relu")
+                nn.init.zeros_(m.bias)
+        # Heads start small: nearly uniform kernels and blends of one half, so that every
+        # level passes gradient from the first step.
+        with torch.no_grad():
+            for h in [*self.kernel_heads, *self.blend_heads]:
+                h.weight.mul_(0.1)
+
+    def forward(self, diffuse: torch.Tensor, specular: torch.Tensor, features: torch.Tensor):
+        color = symlog(torch.cat([diffuse, specular], 1))
+        x = torch.relu(torch.cat([self.color_extractor(color), self.feature_extractor(symlog(features))], 1))
+        skips = [x]
+        for l in range(self.levels - 1):
+            x = self.encoder[l](F.max_pool2d(x, 2))
+            skips.append(x)
+        kernels: list[torch.Tensor] = [None] * self.levels  # type: ignore[list-item]
+        blends: list[torch.Tensor] = [None] * (self.levels - 1)  # type: ignore[list-item]
+        kernels[-1] = self.kernel_heads[-1](x)
+        for l in reversed(range(self.levels - 1)):
+            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
+            x = self.decoder[l](torch.cat([x, skips[l]], 1))
+            kernels[l] = self.kernel_heads[l](x)
+            blends[l] = self.blend_heads[l](x)
+        return (*kernels, *blends)
+
+    # ----- analysis -------------------------------------------------------------------
+
+    def receptive_radius(self) -> int:
+        """Pixels of input context an output pixel depends on, the reconstruction included
+        (docs/model-contract.md, v2 metadata). Exact interval arithmetic: a value at level l,
+        pixel i depends on the full-resolution pixels [i 2^l + a, i 2^l + b]; each operation
+        widens (a, b) as below, and the radius is max(-a, b) at level 0."""
+        def conv(iv, s):  # 3x3 conv at stride s
+            return (iv[0] - s, iv[1] + s)
+
+        def pool(iv, s):  # 2x2 max or average pool from stride s
+            return (iv[0], iv[1] + s)
+
+        def nearest(iv, s):  # nearest x2 to stride s
+            return (iv[0] - s, iv[1])
+
+        def bilinear(iv, s):  # bilinear x2 to stride s
+            return (iv[0] - 2 * s, iv[1] + s)
+
+        def union(*ivs):
+            return (min(i[0] for i in ivs), max(i[1] for i in ivs))
+
+        iv = (0, 0)
+        for _ in range(1 + 2 * self.config["ext_blocks"]):
+            iv = conv(iv, 1)
+        skips = [iv]
+        for l in range(self.levels - 1):
+            iv = conv(conv(pool(iv, 1 << l), 2 << l), 2 << l)
+            skips.append(iv)
+        logits = [None] * self.levels
+        logits[-1] = iv
+        for l in reversed(range(self.levels - 1)):
+            s = 1 << l
+            iv = conv(conv(union(nearest(iv, s), skips[l]), s), s)
+            logits[l] = iv
+        k = self.kernel_size // 2
+        pyramid = [(0, 0)]
+        for l in range(self.levels - 1):
+            pyramid.append(pool(pyramid[-1], 1 << l))
+        filt = [union(logits[l], (pyramid[l][0] - k * (1 << l), pyramid[l][1] + k * (1 << l)))
+                for l in range(self.levels)]
+        out = filt[-1]
+        for l in reversed(range(self.levels - 1)):
+            s = 1 << l
+            out = union(filt[l], logits[l], bilinear(out, s), bilinear(pool(filt[l], s), s))
+        return max(-out[0], out[1])
+
+    def flops_per_pixel(self) -> int:
+        """2 x multiply-adds of every conv per full-resolution pixel (both components)."""
+        macs = 0.0
+
+        def visit(module: nn.Module, scale: float) -> None:
+            nonlocal macs
+            for m in module.modules():
+                if isinstance(m, nn.Conv2d):
+                    kh, kw = m.kernel_size
+                    macs += m.in_channels * m.out_channels * kh * kw / scale
+
+        visit(self.color_extractor, 1)
+        visit(self.feature_extractor, 1)
+        for l in range(self.levels - 1):
+            visit(self.encoder[l], 4 ** (l + 1))
+            visit(self.decoder[l], 4 ** l)
+            visit(self.blend_heads[l], 4 ** l)
+        for l in range(self.levels):
+            visit(self.kernel_heads[l], 4 ** l)
+        return int(round(2 * macs))
+
+    def param_count(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+    def description(self) -> str:
+        c = self.config
+        return (
+            f"msnet: color ({COMPONENT_COUNT}x{COLOR_CHANNELS}) and feature ({self.in_features}) extractors "
+            f"width {c['ext_width']}, {c['ext_blocks']} residual block(s); U-Net {self.levels} levels, "
+            f"encoder {c['enc']}, decoder {c['dec']}; {c['kernel_size']}x{c['kernel_size']} kernels per level "
+            f"and blends; params {self.param_count()}, receptive radius {self.receptive_radius()}"
+        )
+
+
+def pad_to_multiple(x: torch.Tensor, m: int) -> torch.Tensor:
+    """Replicates the last row and column of `x [N,C,H,W]` up to multiples of `m` (as the
+    engine does before inference)."""
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % m, (-w) % m
+    if ph == 0 and pw == 0:
+        return x
+    return F.pad(x, (0, pw, 0, ph), mode="replicate")
+
+
+__all__ = ["DEFAULT", "MSNet", "pad_to_multiple"]

@@ -1,0 +1,127 @@
+"""The engine's preprocessing (src/engine/preprocess.rs) in PyTorch, batched, on any device.
+
+Training draws crops of raw frames, augments them (flips, transposes, colour permutation,
+exposure, injected fireflies) and preprocesses them here, on the GPU when there is one;
+`tests/test_preprocess.py` checks the result against `mcdenoise preprocess` to float
+rounding, so training and serving still see the same tensors.
+
+Raw frames are `[N, RAW_CHANNELS, H, W]` tensors with the channels of `RAW` in order (the
+variance buffers as one channel each, as the data generator writes them), and the
+per-frame statistics `depth_max` and `covariance_max` `[N]` taken over the whole frame
+before cropping (the engine scales depth and covariance by them).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .contract import EPS, select_nocov
+
+LUMINANCE = (0.2126, 0.7152, 0.0722)
+
+RAW = (
+    "diffuse.R", "diffuse.G", "diffuse.B",
+    "specular.R", "specular.G", "specular.B",
+    "albedo.R", "albedo.G", "albedo.B",
+    "normal.R", "normal.G", "normal.B",
+    "depth", "covariance",
+    "diffuseVariance", "specularVariance", "albedoVariance", "normalVariance", "depthVariance",
+    "covarianceVariance",
+)
+RAW_INDEX = {n: i for i, n in enumerate(RAW)}
+DIFFUSE, SPECULAR, ALBEDO, NORMAL = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+DEPTH, COV = 12, 13
+VAR = {"diffuse": 14, "specular": 15, "albedo": 16, "normal": 17, "depth": 18, "covariance": 19}
+
+# Frame channel names (as written by the data generator) of each raw channel.
+FILE_NAMES = {
+    **{f"{b}.{c}": f"{b}.{c}" for b in ("diffuse", "specular", "albedo", "normal") for c in "RGB"},
+    "depth": "depth.Z", "covariance": "covariance",
+    **{f"{b}Variance": f"{b}Variance.Z" for b in ("diffuse", "specular", "albedo", "normal", "depth", "covariance")},
+}
+
+
+def raw_from_channels(ch: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float]:
+    """A frame's channels (name -> [H, W]) as a raw `[RAW_CHANNELS, H, W]` float32 array and
+    its depth and covariance maxima. Missing covariance (frames of renderers without it)
+    and missing variances are zeros."""
+    h, w = next(iter(ch.values())).shape
+    out = np.zeros((len(RAW), h, w), np.float32)
+    for i, n in enumerate(RAW):
+        src = ch.get(FILE_NAMES[n])
+        if src is None and n == "covariance":
+            src = ch.get("covariance.Y")
+        if src is not None:
+            out[i] = src
+    out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+    return out, float(max(out[DEPTH].max(), 0.0)), float(max(out[COV].max(), 0.0))
+
+
+def _gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward differences along W and H, 0 at the last column / row."""
+    gx = torch.zeros_like(x)
+    gy = torch.zeros_like(x)
+    gx[..., :, :-1] = x[..., :, 1:] - x[..., :, :-1]
+    gy[..., :-1, :] = x[..., 1:, :] - x[..., :-1, :]
+    return gx, gy
+
+
+def _lum(v: torch.Tensor) -> torch.Tensor:
+    """Luminance of a [N, 3, H, W] tensor, as [N, 1, H, W]."""
+    return LUMINANCE[0] * v[:, 0:1] + LUMINANCE[1] * v[:, 1:2] + LUMINANCE[2] * v[:, 2:3]
+
+
+def _scaled(x: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+    m = m.view(-1, 1, 1, 1)
+    return torch.where(m > 0, torch.minimum(x.clamp(min=0), m) / m.clamp(min=1e-30), torch.zeros_like(x))
+
+
+def preprocess(raw: torch.Tensor, depth_max: torch.Tensor, cov_max: torch.Tensor, variant: str = "full") -> dict[str, torch.Tensor]:
+    """Network inputs of raw frames `[N, 20, H, W]`: `diffuse`, `specular` `[N, 10, H, W]`,
+    `features` `[N, 28|24, H, W]`, and `albedo` `[N, 3, H, W]` for the inverse transform.
+
+    Gradients at the crop's last column and row are 0, as at a frame's edge in the engine;
+    crop one pixel more than needed and drop it to get interior gradients."""
+    raw = raw.float()
+    albedo = raw[:, ALBEDO]
+    a = albedo.clamp(min=0) + EPS
+    d = raw[:, DIFFUSE].clamp(min=0) / a
+    dvar = _lum(raw[:, VAR["diffuse"]:VAR["diffuse"] + 1] / (a * a))
+    s_raw = raw[:, SPECULAR].clamp(min=0)
+    s = torch.log1p(s_raw)
+    svar = _lum(raw[:, VAR["specular"]:VAR["specular"] + 1] / (1 + s_raw) ** 2)
+    out = {}
+    for name, base, var in (("diffuse", d, dvar), ("specular", s, svar)):
+        gx, gy = _gradients(base)
+        out[name] = torch.cat([base, var, gx, gy], 1)
+    depth = _scaled(raw[:, DEPTH:DEPTH + 1], depth_max)
+    cov = _scaled(raw[:, COV:COV + 1], cov_max)
+    base = torch.cat([raw[:, NORMAL], albedo, depth, cov], 1)
+    inv_sq = lambda m: torch.where(m > 0, 1.0 / (m.clamp(min=1e-30) ** 2), torch.zeros_like(m)).view(-1, 1, 1, 1)
+    variances = torch.cat([
+        raw[:, VAR["normal"]:VAR["normal"] + 1],
+        raw[:, VAR["albedo"]:VAR["albedo"] + 1],
+        raw[:, VAR["depth"]:VAR["depth"] + 1] * inv_sq(depth_max),
+        raw[:, VAR["covariance"]:VAR["covariance"] + 1] * inv_sq(cov_max),
+    ], 1)
+    gx, gy = _gradients(base)
+    features = torch.cat([base, variances, gx, gy], 1)
+    if variant == "nocov":
+        features = select_nocov(features)
+    out["features"] = features
+    out["albedo"] = albedo
+    return out
+
+
+def targets(ref_diffuse: torch.Tensor, ref_specular: torch.Tensor, albedo: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Training targets in the preprocessed domains (the noisy frame's albedo divides the
+    reference diffuse, as in `mcdenoise preprocess --reference`), and the reference color."""
+    return {
+        "diffuse_target": ref_diffuse / (albedo + EPS),
+        "specular_target": torch.log1p(ref_specular.clamp(min=0)),
+        "reference": ref_diffuse + ref_specular,
+    }
+
+
+__all__ = ["FILE_NAMES", "RAW", "RAW_INDEX", "preprocess", "raw_from_channels", "targets"]

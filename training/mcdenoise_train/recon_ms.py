@@ -1,0 +1,90 @@
+"""Multi-scale kernel reconstruction (contract v2), differentiable; the reference the
+engine's Rust implementation is tested against.
+
+Per component, with `c` the preprocessed noisy color `[N, 3, H, W]`:
+
+    c_0 = c,  c_{l+1} = avgpool2x2(c_l)
+    f_l = sum_t softmax(kernel_l)_t * c_l(x + dx_t, y + dy_t)      (edge replication)
+    o_{L-1} = f_{L-1};  o_l = f_l + sigmoid(blend_l) * (up(o_{l+1}) - up(avgpool2x2(f_l)))
+
+`up` is bilinear x2 with half-pixel centres (`align_corners=False`). `reconstruct`
+assembles both components and the final color with v1's inverse transforms.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from .recon import inverse_diffuse, inverse_specular
+
+
+def filter_k(logits: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
+    """`color [N,C,H,W]` filtered with the per-pixel kernels `softmax(logits [N,k²,H,W])`."""
+    taps = logits.shape[1]
+    k = int(round(taps ** 0.5))
+    if k * k != taps or k % 2 == 0:
+        raise ValueError(f"logits must have k² channels for an odd k, got {taps}")
+    r = k // 2
+    h, w = logits.shape[2:]
+    weights = torch.softmax(logits.float(), dim=1)
+    padded = F.pad(color, (r, r, r, r), mode="replicate")
+    out = torch.zeros_like(color)
+    for t in range(taps):
+        dy, dx = divmod(t, k)
+        out = out + weights[:, t : t + 1] * padded[:, :, dy : dy + h, dx : dx + w]
+    return out
+
+
+def up2(x: torch.Tensor) -> torch.Tensor:
+    return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
+
+
+def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor) -> torch.Tensor:
+    """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits)."""
+    levels = len(kernels)
+    if len(blends) != levels - 1:
+        raise ValueError(f"{levels} kernel levels need {levels - 1} blends, got {len(blends)}")
+    pyramid = [color]
+    for _ in range(levels - 1):
+        pyramid.append(F.avg_pool2d(pyramid[-1], 2))
+    filtered = [filter_k(kernels[l], pyramid[l]) for l in range(levels)]
+    out = filtered[-1]
+    for l in reversed(range(levels - 1)):
+        a = torch.sigmoid(blends[l].float())
+        f = filtered[l]
+        out = f + a * (up2(out) - up2(F.avg_pool2d(f, 2)))
+    return out
+
+
+def split_outputs(outputs: Sequence[torch.Tensor], levels: int):
+    """The network's outputs as per-component lists: ({comp: kernels}, {comp: blends})."""
+    kernels, blends = outputs[:levels], outputs[levels:]
+    taps = kernels[0].shape[1] // 2
+    k = {"diffuse": [t[:, :taps] for t in kernels], "specular": [t[:, taps:] for t in kernels]}
+    b = {"diffuse": [t[:, 0:1] for t in blends], "specular": [t[:, 1:2] for t in blends]}
+    return k, b
+
+
+class Reconstruction(NamedTuple):
+    diffuse_pre: torch.Tensor
+    specular_pre: torch.Tensor
+    diffuse: torch.Tensor
+    specular: torch.Tensor
+    total: torch.Tensor
+
+
+def reconstruct(outputs: Sequence[torch.Tensor], levels: int, diffuse_color: torch.Tensor,
+                specular_color: torch.Tensor, albedo: torch.Tensor) -> Reconstruction:
+    """Both components and the final color from the network's outputs."""
+    k, b = split_outputs(outputs, levels)
+    d_pre = reconstruct_component(k["diffuse"], b["diffuse"], diffuse_color[:, :3].float())
+    s_pre = reconstruct_component(k["specular"], b["specular"], specular_color[:, :3].float())
+    d = inverse_diffuse(d_pre, albedo)
+    s = inverse_specular(s_pre.clamp(max=80.0))
+    return Reconstruction(d_pre, s_pre, d, s, d + s)
+
+
+__all__ = ["Reconstruction", "filter_k", "reconstruct", "reconstruct_component", "split_outputs", "up2"]

@@ -1,0 +1,117 @@
+"""The contract-v2 network, its reconstruction and its export."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from mcdenoise_train.contract import FEATURES_FULL, NOCOV_INDICES
+from mcdenoise_train.export_ms import export_onnx, nocov_from_full, read_metadata_v2, verify_onnx
+from mcdenoise_train.msnet import MSNet, pad_to_multiple
+from mcdenoise_train.recon_ms import filter_k, reconstruct, reconstruct_component, up2
+
+SMALL = dict(ext_width=4, ext_blocks=1, enc=(6, 6, 8, 8), dec=(6, 6, 8, 8), kernel_size=5, levels=5)
+
+
+def _inputs(n, h, w, c=28, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 10, h, w, generator=g), torch.rand(n, 10, h, w, generator=g),
+            torch.rand(n, c, h, w, generator=g))
+
+
+def test_output_shapes_and_cost():
+    net = MSNet(28, **SMALL)
+    out = net(*_inputs(2, 32, 48))
+    assert [tuple(o.shape) for o in out] == [
+        (2, 50, 32, 48), (2, 50, 16, 24), (2, 50, 8, 12), (2, 50, 4, 6), (2, 50, 2, 3),
+        (2, 2, 32, 48), (2, 2, 16, 24), (2, 2, 8, 12), (2, 2, 4, 6)]
+    # The production default stays inside the budget of 0.3 MFLOP per pixel, both components.
+    assert MSNet(28).flops_per_pixel() < 0.3e6
+
+
+@pytest.mark.parametrize("y,x", [(64, 64), (65, 70), (79, 77)])
+def test_receptive_radius_bounds_the_dependency(y, x):
+    torch.manual_seed(1)
+    net = MSNet(28, **SMALL).eval()
+    h = w = 160
+    d, s, f = (t.requires_grad_(True) for t in _inputs(1, h, w, seed=y * x))
+    rec = reconstruct(net(d, s, f), net.levels, d, s, torch.rand(1, 3, h, w))
+    rec.total[0, :, y, x].sum().backward()
+    g = d.grad.abs().sum((0, 1)) + s.grad.abs().sum((0, 1)) + f.grad.abs().sum((0, 1))
+    ys, xs = torch.nonzero(g > 0, as_tuple=True)
+    reach = max((ys - y).abs().max().item(), (xs - x).abs().max().item())
+    assert 0 < reach <= net.receptive_radius()
+
+
+def test_filter_matches_a_direct_loop():
+    g = torch.Generator().manual_seed(3)
+    logits = torch.randn(1, 9, 5, 6, generator=g)
+    color = torch.rand(1, 3, 5, 6, generator=g)
+    out = filter_k(logits, color)
+    w = torch.softmax(logits, 1)
+    for y in range(5):
+        for x in range(6):
+            acc = torch.zeros(3)
+            for t in range(9):
+                dy, dx = divmod(t, 3)
+                acc += w[0, t, y, x] * color[0, :, min(max(y + dy - 1, 0), 4), min(max(x + dx - 1, 0), 5)]
+            assert torch.allclose(out[0, :, y, x], acc, atol=1e-6)
+
+
+def test_uniform_kernels_and_zero_blend_keep_a_constant_image():
+    color = torch.full((1, 3, 16, 16), 0.7)
+    kernels = [torch.zeros(1, 25, 16 >> l, 16 >> l) for l in range(3)]
+    blends = [torch.zeros(1, 1, 16 >> l, 16 >> l) for l in range(2)]
+    assert torch.allclose(reconstruct_component(kernels, blends, color), color, atol=1e-6)
+
+
+def test_full_blend_takes_the_coarse_level_low_frequencies():
+    """With blend -> 1 and identity kernels, o_0 = c - up(avg(c)) + up(avg(c)) = c."""
+    g = torch.Generator().manual_seed(4)
+    color = torch.rand(1, 3, 16, 16, generator=g)
+    ident = torch.full((1, 9, 1, 1), -30.0)
+    ident[:, 4] = 30.0
+    kernels = [ident.expand(1, 9, 16 >> l, 16 >> l) for l in range(3)]
+    blends = [torch.full((1, 1, 16 >> l, 16 >> l), 30.0) for l in range(2)]
+    assert torch.allclose(reconstruct_component(kernels, blends, color), color, atol=1e-5)
+    assert torch.allclose(up2(F.avg_pool2d(color, 2)).mean(), color.mean(), atol=1e-6)
+
+
+def test_pad_to_multiple_replicates_the_edge():
+    x = torch.arange(12.0).view(1, 1, 3, 4)
+    p = pad_to_multiple(x, 4)
+    assert p.shape == (1, 1, 4, 4) and torch.equal(p[0, 0, 3], x[0, 0, 2])
+
+
+def test_nocov_cut_equals_the_full_network_on_zero_covariance():
+    torch.manual_seed(2)
+    full = MSNet(28, **SMALL).eval()
+    nocov = nocov_from_full(full)
+    d, s, f = _inputs(1, 32, 32)
+    cov = [i for i in range(28) if i not in NOCOV_INDICES]
+    f[:, cov] = 0
+    with torch.no_grad():
+        a, b = full(d, s, f), nocov(d, s, f[:, list(NOCOV_INDICES)])
+    for x, y in zip(a, b):
+        assert torch.allclose(x, y, atol=1e-5)
+
+
+def test_export_round_trip(tmp_path):
+    torch.manual_seed(0)
+    net = MSNet(28, **SMALL).eval()
+    path = tmp_path / "full" / "model.onnx"
+    export_onnx(net, path, "full")
+    meta = read_metadata_v2(path)
+    assert meta["mcdenoise.contract"] == "2" and meta["mcdenoise.levels"] == "5"
+    assert meta["mcdenoise.size_multiple"] == "16" and meta["mcdenoise.kernel_size"] == "5"
+    assert meta["mcdenoise.features"] == ",".join(FEATURES_FULL)
+    assert int(meta["mcdenoise.receptive_radius"]) == net.receptive_radius()
+    assert verify_onnx(path, net) < 1e-4
+    # A broken network is caught by the verification.
+    with torch.no_grad():
+        net.kernel_heads[0].bias.add_(1.0)
+    with pytest.raises(RuntimeError):
+        verify_onnx(path, net)
+    assert np.isfinite(float(meta["mcdenoise.flops_per_pixel"]))
