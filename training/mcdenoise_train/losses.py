@@ -1,0 +1,82 @@
+"""Losses and image metrics for training, in PyTorch.
+
+`smape` is the paper's pixel loss (Lin et al. 2020, eq. 7); `relmse` and `dssim` mirror
+the engine's image metrics (src/metrics.rs: RelMSE with 0.01 in the denominator, SSIM of
+the [0, 1]-clamped channels with an 11-tap Gaussian of σ 1.5 over the valid region), so
+that checkpoint selection ranks networks as `make eval` does. `ms_loss` is the contract-v2
+training objective.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+SMAPE_EPS = 1e-2
+
+
+def smape(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Symmetric mean absolute percentage error; ε = 1e-2 keeps dark pixels from dominating."""
+    return (2.0 * (x - y).abs() / (x.abs() + y.abs() + SMAPE_EPS)).mean()
+
+
+def relmse(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    return ((x - r) ** 2 / (r * r + 0.01)).mean()
+
+
+def _gaussian(device, dtype, radius: int = 5, sigma: float = 1.5) -> torch.Tensor:
+    t = torch.arange(-radius, radius + 1, device=device, dtype=dtype)
+    g = torch.exp(-(t * t) / (2 * sigma * sigma))
+    return g / g.sum()
+
+
+def ssim_map(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Per-pixel SSIM of [N, C, H, W] images clamped to [0, 1] (valid region)."""
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    x, r = x.clamp(0, 1), r.clamp(0, 1)
+    c = x.shape[1]
+    g = _gaussian(x.device, x.dtype)
+    gh = g.view(1, 1, 1, -1).expand(c, 1, 1, -1)
+    gv = g.view(1, 1, -1, 1).expand(c, 1, -1, 1)
+
+    def blur(t):
+        return F.conv2d(F.conv2d(t, gh, groups=c), gv, groups=c)
+
+    ma, mb = blur(x), blur(r)
+    va, vb, cov = blur(x * x) - ma * ma, blur(r * r) - mb * mb, blur(x * r) - ma * mb
+    return ((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma * ma + mb * mb + c1) * (va + vb + c2))
+
+
+def dssim(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    return 1.0 - ssim_map(x, r).mean()
+
+
+def tonemap(x: torch.Tensor) -> torch.Tensor:
+    """log(1 + x) of the non-negative part: the HDR transfer function of the color loss."""
+    return torch.log1p(x.clamp(min=0))
+
+
+def ms_loss(rec, b: dict, l1_weight: float = 1.0, ssim_weight: float = 0.0, perceptual=None,
+            perceptual_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+    """SMAPE of both components in their preprocessed domains, L1 of the tonemapped final
+    color, optionally DSSIM of the final color and the perceptual loss on it."""
+    d = smape(rec.diffuse_pre, b["diffuse_target"])
+    s = smape(rec.specular_pre, b["specular_target"])
+    loss = d + s
+    parts = {"smape_diffuse": float(d.detach()), "smape_specular": float(s.detach())}
+    if l1_weight > 0:
+        l1 = (tonemap(rec.total) - tonemap(b["reference"])).abs().mean()
+        parts["l1"] = float(l1.detach())
+        loss = loss + l1_weight * l1
+    if ssim_weight > 0:
+        ds = dssim(rec.total, b["reference"])
+        parts["dssim"] = float(ds.detach())
+        loss = loss + ssim_weight * ds
+    if perceptual is not None and perceptual_weight > 0:
+        p = perceptual(tonemap(rec.total), tonemap(b["reference"]))
+        parts["perceptual"] = float(p.detach())
+        loss = loss + perceptual_weight * p
+    return loss, parts
+
+
+__all__ = ["dssim", "ms_loss", "relmse", "smape", "ssim_map", "tonemap"]

@@ -1,0 +1,380 @@
+"""Train the production network (contract v2, `msnet.py`) on a CPU or a GPU.
+
+    python -m mcdenoise_train.train_ms --data DATA [--data DATA2 ...] --out runs/ms [options]
+
+Recipe:
+
+- **Data**: every noisy frame of the manifests' training scenes (all sample counts) with
+  its reference, held as raw buffers (`preprocess.RAW`) on the training device; validation
+  frames are the manifests' `val` scenes. Test scenes are never read here.
+- **Crops and augmentation** (on the device, per patch): random crops, flips and
+  transposes, a permutation of R, G, B shared by the radiance, albedo and references,
+  exposure scaled by 2^U(-e, e) (radiance ×k, variances ×k²), and, in a fraction of the
+  patches, injected fireflies: a few isolated samples of 10–10,000× the local level added
+  to the noisy diffuse or specular buffer (and its variance), never to the reference, so the
+  network learns not to pass them through. The patches are then preprocessed by
+  `preprocess.py`, the engine's transform in PyTorch.
+- **Covariance dropout**: in a fraction of the patches the covariance channels are
+  zeroed, so one network serves frames with and without covariance: `full` is exported
+  as is, `nocov` with the covariance inputs cut (`export_ms.nocov_from_full`).
+- **Loss** (`losses.py`): SMAPE of each component in its preprocessed domain (Lin et al.
+  2020), plus L1 of the final color after the transfer function log(1 + x) (robust to HDR
+  outliers), plus `--perceptual W` × the VGG-16 feature loss when the weights are present.
+- **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine), bf16 autocast on CUDA.
+- **Checkpoints** (`runs` directory): `best.pt` (network weights and config, selected on the
+  validation frames by mean log RelMSE + mean log DSSIM), `state.pt` (network, optimizer,
+  scheduler, step: `--resume` continues), `log.jsonl`, `val.jsonl`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import losses
+from .contract import FEATURES_FULL, NOCOV_INDICES
+from .data import read_manifest
+from .frames import read_exr
+from .msnet import DEFAULT, MSNet, pad_to_multiple
+from .preprocess import ALBEDO, COV, DIFFUSE, SPECULAR, VAR, preprocess, raw_from_channels, targets
+from .recon_ms import reconstruct
+
+COV_FEATURES = [i for i in range(len(FEATURES_FULL)) if i not in NOCOV_INDICES]
+
+
+# ----- data ---------------------------------------------------------------------------
+
+
+def load_raw(record: dict, cache: Path | None) -> dict[str, np.ndarray | float]:
+    """One record's raw noisy buffers, reference diffuse/specular and frame maxima (cached
+    as .npz beside the data when `cache` is given)."""
+    if cache is not None:
+        p = cache / (Path(record["noisy"]).stem + ".npz")
+        if p.exists() and p.stat().st_mtime >= max(os.path.getmtime(record["noisy"]), os.path.getmtime(record["reference"])):
+            with np.load(p) as z:
+                return {k: z[k] for k in z.files}
+    raw, dmax, cmax = raw_from_channels(read_exr(record["noisy"]))
+    ref = read_exr(record["reference"])
+    refs = np.stack([ref[f"{b}.{c}"] for b in ("diffuse", "specular") for c in "RGB"]).astype(np.float32)
+    out = {"raw": raw, "ref": np.nan_to_num(refs), "maxima": np.array([dmax, cmax], np.float32)}
+    if cache is not None:
+        cache.mkdir(parents=True, exist_ok=True)
+        tmp = cache / f"{p.stem}.{os.getpid()}.part.npz"
+        np.savez(tmp, **out)
+        os.replace(tmp, p)
+    return out
+
+
+class FrameSet:
+    """Frames of one split as device tensors: raw [F, 20, H, W], ref [F, 6, H, W], maxima [F, 2]."""
+
+    def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None):
+        recs = []
+        for d in dirs:
+            recs += [(r, Path(d)) for r in read_manifest(d) if r.get("split", "train") == split]
+        recs = recs[:limit]
+        by_shape: dict[tuple, list] = {}
+        self.names, self.spp, self.scenes = [], [], []
+        for r, d in recs:
+            a = load_raw(r, d / "raw-cache")
+            by_shape.setdefault(a["raw"].shape, []).append(a)
+            self.names.append(Path(r["noisy"]).stem)
+            self.spp.append(int(r.get("spp", 0)))
+            self.scenes.append(str(r.get("scene", "")))
+        if len(by_shape) > 1:
+            raise ValueError(f"frames of several sizes in {dirs} ({sorted(by_shape)}); use one size per data set")
+        arrays = next(iter(by_shape.values())) if by_shape else []
+        self.raw = torch.from_numpy(np.stack([a["raw"] for a in arrays])).to(device) if arrays else None
+        self.ref = torch.from_numpy(np.stack([a["ref"] for a in arrays])).to(device) if arrays else None
+        self.maxima = torch.from_numpy(np.stack([a["maxima"] for a in arrays])).to(device) if arrays else None
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+def augment(raw: torch.Tensor, ref: torch.Tensor, g: torch.Generator, a: argparse.Namespace):
+    """Flips, transposes, RGB permutation, exposure and injected fireflies, per patch."""
+    n = raw.shape[0]
+    dev = raw.device
+    out_raw, out_ref = [], []
+    for i in range(n):
+        r, t = raw[i], ref[i]
+        flips = torch.randint(0, 2, (3,), generator=g).tolist()
+        if flips[0]:
+            r, t = r.flip(-1), t.flip(-1)
+        if flips[1]:
+            r, t = r.flip(-2), t.flip(-2)
+        if flips[2] and r.shape[-1] == r.shape[-2]:
+            r, t = r.transpose(-1, -2), t.transpose(-1, -2)
+        perm = torch.randperm(3, generator=g).tolist()
+        if perm != [0, 1, 2]:
+            idx = list(range(r.shape[0]))
+            for base in (DIFFUSE.start, SPECULAR.start, ALBEDO.start):
+                for j in range(3):
+                    idx[base + j] = base + perm[j]
+            r = r[idx]
+            t = t[[perm[0], perm[1], perm[2], 3 + perm[0], 3 + perm[1], 3 + perm[2]]]
+        out_raw.append(r)
+        out_ref.append(t)
+    raw, ref = torch.stack(out_raw), torch.stack(out_ref)
+    # Exposure: radiance x k, its variances x k^2 (albedo, normal, depth, covariance unchanged).
+    k = torch.exp2((torch.rand(n, 1, 1, 1, generator=g) * 2 - 1) * a.exposure).to(dev)
+    raw = raw.clone()
+    raw[:, DIFFUSE] *= k
+    raw[:, SPECULAR] *= k
+    raw[:, VAR["diffuse"]:VAR["specular"] + 1] *= k * k
+    ref = ref * k
+    if a.fireflies > 0:
+        inject_fireflies(raw, g, a.fireflies)
+    return raw, ref
+
+
+def inject_fireflies(raw: torch.Tensor, g: torch.Generator, fraction: float, per_patch: int = 4) -> None:
+    """In place: in `fraction` of the patches, `per_patch` isolated samples of 10–10^4 x the
+    local level added to the diffuse or the specular buffer, variance raised to match."""
+    n, _, h, w = raw.shape
+    for i in range(n):
+        if torch.rand(1, generator=g).item() >= fraction:
+            continue
+        for _ in range(per_patch):
+            y, x = torch.randint(0, h, (1,), generator=g).item(), torch.randint(0, w, (1,), generator=g).item()
+            comp = DIFFUSE if torch.rand(1, generator=g).item() < 0.5 else SPECULAR
+            var = VAR["diffuse"] if comp is DIFFUSE else VAR["specular"]
+            y0, y1, x0, x1 = max(0, y - 3), min(h, y + 4), max(0, x - 3), min(w, x + 4)
+            level = raw[i, comp, y0:y1, x0:x1].mean().clamp(min=1e-2)
+            gain = 10.0 ** (1 + 3 * torch.rand(1, generator=g).item())
+            tint = torch.rand(3, generator=g).to(raw.device) * 0.5 + 0.5
+            added = level * gain * tint
+            raw[i, comp, y, x] += added
+            raw[i, var, y, x] += float((added.mean() ** 2).item())
+
+
+def crops(fs: FrameSet, n: int, patch: int, g: torch.Generator):
+    """`n` random crops of side patch + 1 (the extra row and column give the last pixel's
+    forward gradient; it is dropped after preprocessing)."""
+    f = torch.randint(0, len(fs), (n,), generator=g).tolist()
+    h, w = fs.raw.shape[-2:]
+    p = patch + 1
+    ys = torch.randint(0, h - p + 1, (n,), generator=g).tolist()
+    xs = torch.randint(0, w - p + 1, (n,), generator=g).tolist()
+    raw = torch.stack([fs.raw[i, :, y:y + p, x:x + p] for i, y, x in zip(f, ys, xs)])
+    ref = torch.stack([fs.ref[i, :, y:y + p, x:x + p] for i, y, x in zip(f, ys, xs)])
+    return raw, ref, fs.maxima[f]
+
+
+def batch_inputs(raw, ref, maxima, cov_dropout: float, g: torch.Generator, crop: int | None = None):
+    """Preprocessed network inputs and targets of raw patches (covariance zeroed in a
+    `cov_dropout` fraction), cropped to `crop` pixels."""
+    inp = preprocess(raw, maxima[:, 0], maxima[:, 1], "full")
+    tgt = targets(ref[:, 0:3], ref[:, 3:6], inp["albedo"])
+    if cov_dropout > 0:
+        keep = (torch.rand(raw.shape[0], generator=g) >= cov_dropout).to(raw.device, raw.dtype)
+        inp["features"][:, COV_FEATURES] *= keep.view(-1, 1, 1, 1)
+    out = {**inp, **tgt}
+    if crop is not None:
+        out = {k: v[..., :crop, :crop] for k, v in out.items()}
+    return out
+
+
+# ----- training -----------------------------------------------------------------------
+
+
+def forward(net: MSNet, b: dict[str, torch.Tensor], autocast: bool):
+    with torch.autocast(device_type=b["diffuse"].device.type, dtype=torch.bfloat16, enabled=autocast):
+        out = net(b["diffuse"], b["specular"], b["features"])
+    out = [o.float() for o in out]
+    return reconstruct(out, net.levels, b["diffuse"], b["specular"], b["albedo"])
+
+
+@torch.no_grad()
+def denoise_whole(net: MSNet, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool = False) -> torch.Tensor:
+    """Whole frames [N, 20, H, W] denoised (padded to the network's size multiple): [N, 3, H, W]."""
+    h, w = raw.shape[-2:]
+    b = preprocess(raw, maxima[:, 0], maxima[:, 1], "full")
+    if zero_cov:
+        b["features"][:, COV_FEATURES] = 0
+    b = {k: pad_to_multiple(v, net.size_multiple) for k, v in b.items()}
+    rec = forward(net, b, autocast=False)
+    return rec.total[..., :h, :w]
+
+
+def validate(net: MSNet, val: FrameSet, zero_cov: bool = False) -> dict[str, float]:
+    net.eval()
+    rel, dssim, inp = [], [], []
+    for i in range(len(val)):
+        out = denoise_whole(net, val.raw[i:i + 1], val.maxima[i:i + 1], zero_cov)
+        ref = val.ref[i:i + 1, 0:3] + val.ref[i:i + 1, 3:6]
+        noisy = val.raw[i:i + 1, DIFFUSE] + val.raw[i:i + 1, SPECULAR]
+        rel.append(float(losses.relmse(out, ref)))
+        dssim.append(float(losses.dssim(out, ref)))
+        inp.append(float(losses.relmse(noisy, ref)))
+    net.train()
+    return {"relmse": float(np.mean(rel)), "dssim": float(np.mean(dssim)), "input_relmse": float(np.mean(inp)),
+            "score": float(np.mean(np.log(rel)) + np.mean(np.log(np.maximum(dssim, 1e-6))))}
+
+
+def parse(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", action="append", required=True, help="data set directory (repeatable)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--steps", type=int, default=20000)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--patch", type=int, default=128)
+    p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate of the one-cycle schedule")
+    p.add_argument("--exposure", type=float, default=2.0, help="exposure augmentation range in stops (±)")
+    p.add_argument("--fireflies", type=float, default=0.25, help="fraction of patches with injected fireflies")
+    p.add_argument("--cov-dropout", type=float, default=0.3, help="fraction of patches with covariance zeroed")
+    p.add_argument("--l1", type=float, default=1.0, help="weight of L1 on log(1 + color)")
+    p.add_argument("--ssim", type=float, default=0.0, help="weight of DSSIM of the final color")
+    p.add_argument("--perceptual", type=float, default=0.0)
+    p.add_argument("--val-every", type=int, default=500)
+    p.add_argument("--val-frames", type=int, default=None)
+    p.add_argument("--time-limit", type=float, default=None, help="stop (saving state) after this many seconds")
+    p.add_argument("--time-budget", type=float, default=None,
+                   help="fit the schedule to this many seconds of training: after 50 steps the step count is set "
+                        "from the measured rate (and kept on resume)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=os.cpu_count())
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--resume", action="store_true")
+    p.add_argument("--ext-width", type=int, default=DEFAULT["ext_width"])
+    p.add_argument("--ext-blocks", type=int, default=DEFAULT["ext_blocks"])
+    p.add_argument("--enc", default=",".join(map(str, DEFAULT["enc"])))
+    p.add_argument("--dec", default=",".join(map(str, DEFAULT["dec"])))
+    p.add_argument("--kernel-size", type=int, default=DEFAULT["kernel_size"])
+    p.add_argument("--levels", type=int, default=DEFAULT["levels"])
+    p.add_argument("--export", default=None, help="export best.pt as contract-v2 full and nocov into this models directory")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    a = parse(argv)
+    torch.set_num_threads(max(1, a.threads))
+    torch.set_flush_denormal(True)
+    dev = torch.device(a.device)
+    autocast = dev.type == "cuda"
+    if autocast:
+        torch.backends.cudnn.benchmark = True
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_load = time.time()
+    train = FrameSet(a.data, "train", dev)
+    val = FrameSet(a.data, "val", dev, a.val_frames)
+    if not len(train):
+        raise SystemExit(f"{a.data}: no training frames")
+    print(f"{len(train)} training / {len(val)} validation frames loaded in {time.time() - t_load:.0f} s",
+          file=sys.stderr, flush=True)
+    torch.manual_seed(a.seed)
+    net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
+                enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
+                kernel_size=a.kernel_size, levels=a.levels).to(dev).to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(net.parameters(), lr=a.lr)
+
+    def schedule(total: int, done: int = 0):
+        """One-cycle schedule over `total` steps, advanced past the `done` steps taken (the
+        schedule is a function of the step alone, so a resumed run may also be longer)."""
+        for group in opt.param_groups:
+            group.pop("initial_lr", None)
+        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=a.lr, total_steps=total, pct_start=0.15,
+                                                    anneal_strategy="cos", div_factor=25.0, final_div_factor=1e3)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for _ in range(done):
+                sched.step()
+        return sched
+
+    sched = schedule(a.steps)
+    perceptual = None
+    if a.perceptual > 0:
+        from .perceptual import PerceptualLoss
+
+        perceptual = PerceptualLoss().to(dev)
+    step, best, elapsed, fitted = 0, math.inf, 0.0, False
+    state_path = out / "state.pt"
+    if a.resume and state_path.exists():
+        st = torch.load(state_path, map_location=dev, weights_only=False)
+        net.load_state_dict(st["model"])
+        opt.load_state_dict(st["opt"])
+        step, best, elapsed = st["step"], st["best"], st["elapsed"]
+        if st.get("fitted"):  # a schedule fitted to a time budget keeps its length
+            a.steps, a.time_budget, fitted = st["steps"], None, True
+        sched = schedule(a.steps, done=step)
+        print(f"resumed at step {step}", file=sys.stderr)
+    (out / "config.json").write_text(json.dumps(vars(a), indent=2))
+    print(f"training: {net.description()}; {net.flops_per_pixel() / 1e6:.3f} MFLOP/px", file=sys.stderr, flush=True)
+    log = open(out / "log.jsonl", "a")
+    t0 = time.time() - elapsed
+    g = torch.Generator().manual_seed(a.seed * 1_000_003 + step)
+
+    def save_state():
+        torch.save({"model": net.state_dict(), "opt": opt.state_dict(), "fitted": fitted,
+                    "step": step, "steps": a.steps, "best": best, "elapsed": time.time() - t0},
+                   str(state_path) + ".part")
+        os.replace(str(state_path) + ".part", state_path)
+
+    stop = False
+    t_fit = time.time()
+    while step < a.steps and not stop:
+        raw, ref, maxima = crops(train, a.batch, a.patch, g)
+        raw, ref = augment(raw, ref, g, a)
+        b = batch_inputs(raw, ref, maxima, a.cov_dropout, g, crop=a.patch)
+        b = {k: v.contiguous(memory_format=torch.channels_last) for k, v in b.items()}
+        rec = forward(net, b, autocast)
+        loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual, perceptual_weight=a.perceptual)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        step += 1
+        if a.time_budget is not None and step == 50:
+            rate = 50 / (time.time() - t_fit)
+            # Validation passes take time too: budget them at 5 %.
+            a.steps = max(100, int(50 + rate * (0.95 * a.time_budget - (time.time() - t0))))
+            a.val_every = max(50, a.steps // 8)
+            sched = schedule(a.steps, done=step)
+            fitted = True
+            print(f"{rate:.1f} steps/s: schedule fitted to {a.steps} steps", file=sys.stderr, flush=True)
+        if step % 20 == 0:
+            row = {"step": step, "loss": float(loss.detach()), **parts, "lr": sched.get_last_lr()[0], "time": time.time() - t0}
+            log.write(json.dumps(row) + "\n")
+            log.flush()
+            if step % 100 == 0:
+                print(f"step {step}/{a.steps} loss {row['loss']:.4f} {row['time']:.0f}s", file=sys.stderr, flush=True)
+        stop = a.time_limit is not None and time.time() - t0 > a.time_limit
+        if step % a.val_every == 0 or step == a.steps or stop:
+            v = validate(net, val) if len(val) else {"score": float(loss), "relmse": float("nan")}
+            if len(val):
+                v["nocov"] = validate(net, val, zero_cov=True)
+            v.update(step=step, time=time.time() - t0)
+            with open(out / "val.jsonl", "a") as f:
+                f.write(json.dumps(v) + "\n")
+            print(f"validation at {step}: RelMSE {v['relmse']:.5f} DSSIM {v.get('dssim', float('nan')):.4f} "
+                  f"(input {v.get('input_relmse', float('nan')):.4f})", file=sys.stderr, flush=True)
+            if v["score"] < best:
+                best = v["score"]
+                torch.save({"config": net.config, "state_dict": {k: t.detach().cpu() for k, t in net.state_dict().items()},
+                            "step": step, "val": v}, out / "best.pt")
+            save_state()
+    log.close()
+    if a.export:
+        from . import export_ms
+
+        export_ms.main(["--checkpoint", str(out / "best.pt"), "--out", a.export])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,111 @@
+"""The contract-v2 training path: PyTorch preprocessing against the engine's, augmentation,
+a few training steps end to end with resume and export."""
+
+import json
+import os
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+
+from mcdenoise_train import train_ms
+from mcdenoise_train.export_ms import read_metadata_v2
+from mcdenoise_train.frames import read_exr, synthetic_frame, write_exr
+from mcdenoise_train.preprocess import DIFFUSE, RAW, SPECULAR, VAR, preprocess, raw_from_channels, targets
+
+from test_train import make_dataset, needs_engine
+
+BIN = os.environ.get("MCDENOISE_BIN", "")
+
+
+@needs_engine
+@pytest.mark.parametrize("covariance", [True, False])
+def test_preprocessing_matches_the_engine(tmp_path, covariance):
+    ch = synthetic_frame(40, 48, seed=3, covariance=covariance)
+    ref = {k: v * 0.9 for k, v in ch.items()}
+    write_exr(tmp_path / "f.exr", ch)
+    write_exr(tmp_path / "r.exr", ref)
+    subprocess.run([BIN, "preprocess", str(tmp_path / "f.exr"), "--reference", str(tmp_path / "r.exr"),
+                    "-o", str(tmp_path / "f.npz")], check=True, capture_output=True)
+    engine = np.load(tmp_path / "f.npz")
+    raw, dmax, cmax = raw_from_channels(read_exr(tmp_path / "f.exr"))
+    t = preprocess(torch.from_numpy(raw)[None], torch.tensor([dmax]), torch.tensor([cmax]),
+                   "full" if covariance else "nocov")
+    for name, key in (("diffuse", "diffuse_color"), ("specular", "specular_color"), ("features", "features")):
+        np.testing.assert_allclose(t[name][0].numpy(), engine[key], rtol=1e-5, atol=1e-6, err_msg=name)
+    r, _, _ = raw_from_channels(read_exr(tmp_path / "r.exr"))
+    tg = targets(torch.from_numpy(r[DIFFUSE])[None], torch.from_numpy(r[SPECULAR])[None], t["albedo"])
+    np.testing.assert_allclose(tg["diffuse_target"][0].numpy(), engine["diffuse_target"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(tg["specular_target"][0].numpy(), engine["specular_target"], rtol=1e-5, atol=1e-6)
+
+
+def _raw_batch(n=3, size=33, seed=0):
+    raws, refs = [], []
+    for i in range(n):
+        raw, dmax, cmax = raw_from_channels(synthetic_frame(size, size, seed=seed + i))
+        raws.append(raw)
+        refs.append(np.concatenate([raw[DIFFUSE], raw[SPECULAR]]) * 0.5)
+    return torch.from_numpy(np.stack(raws)), torch.from_numpy(np.stack(refs))
+
+
+def _args(**kw):
+    a = train_ms.parse(["--data", "x", "--out", "y"])
+    a.exposure, a.fireflies = 0.0, 0.0
+    for k, v in kw.items():
+        setattr(a, k, v)
+    return a
+
+
+def test_augmentation_keeps_inputs_and_references_aligned():
+    raw, ref = _raw_batch()
+    g = torch.Generator().manual_seed(1)
+    a_raw, a_ref = train_ms.augment(raw, ref, g, _args())
+    # Flips, transposes and colour permutations move input and reference together: the
+    # reference stays 0.5 x the noisy radiance, pixel for pixel and channel for channel.
+    np.testing.assert_allclose(a_ref[:, 0:3].numpy(), 0.5 * a_raw[:, DIFFUSE].numpy(), rtol=1e-6)
+    np.testing.assert_allclose(a_ref[:, 3:6].numpy(), 0.5 * a_raw[:, SPECULAR].numpy(), rtol=1e-6)
+    assert not torch.equal(a_raw, raw)  # something was applied with this seed
+
+
+def test_exposure_scales_radiance_and_variance_together():
+    raw, ref = _raw_batch(1)
+    g = torch.Generator().manual_seed(5)
+    a_raw, a_ref = train_ms.augment(raw, ref, g, _args(exposure=3.0))
+    ratio = float(a_raw[0, DIFFUSE].sum() / raw[0, DIFFUSE].sum())
+    var_ratio = float(a_raw[0, VAR["diffuse"]].sum() / raw[0, VAR["diffuse"]].sum())
+    assert 2 ** -3 <= ratio <= 2 ** 3 and ratio != 1.0
+    assert var_ratio == pytest.approx(ratio ** 2, rel=1e-4)
+
+
+def test_injected_fireflies_touch_inputs_only():
+    raw, ref = _raw_batch(2)
+    before = raw.clone()
+    g = torch.Generator().manual_seed(0)
+    train_ms.inject_fireflies(raw, g, fraction=1.0, per_patch=3)
+    changed = (raw != before).any(1)  # pixels changed in any channel
+    assert 1 <= int(changed[0].sum()) <= 3 and 1 <= int(changed[1].sum()) <= 3
+    y, x = [int(v[0]) for v in torch.nonzero(changed[0], as_tuple=True)]
+    comp = DIFFUSE if (raw[0, DIFFUSE, y, x] != before[0, DIFFUSE, y, x]).any() else SPECULAR
+    assert float(raw[0, comp, y, x].mean()) >= 5 * float(before[0, comp, y, x].mean())
+    var = VAR["diffuse"] if comp is DIFFUSE else VAR["specular"]
+    assert float(raw[0, var, y, x]) > float(before[0, var, y, x])
+
+
+def test_training_steps_resume_and_export(tmp_path):
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    out, models = tmp_path / "run", tmp_path / "models"
+    small = ["--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32", "--batch", "2",
+             "--threads", "2", "--device", "cpu", "--val-every", "2"]
+    assert train_ms.main(["--data", str(root), "--out", str(out), "--steps", "3", *small]) == 0
+    val = [json.loads(l) for l in open(out / "val.jsonl")]
+    assert [v["step"] for v in val] == [2, 3] and all(np.isfinite(v["relmse"]) for v in val)
+    assert "nocov" in val[0] and np.isfinite(val[0]["nocov"]["relmse"])
+    # Resume continues from step 3 to 5 with the saved optimizer and schedule.
+    assert train_ms.main(["--data", str(root), "--out", str(out), "--steps", "5", "--resume", *small,
+                          "--export", str(models)]) == 0
+    val = [json.loads(l) for l in open(out / "val.jsonl")]
+    assert [v["step"] for v in val] == [2, 3, 4, 5]
+    for variant in ("full", "nocov"):
+        meta = read_metadata_v2(models / variant / "model.onnx")
+        assert meta["mcdenoise.contract"] == "2" and meta["mcdenoise.variant"] == variant
