@@ -40,13 +40,17 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from . import losses
 from .contract import FEATURES_FULL, NOCOV_INDICES
 from .data import read_manifest
 from .frames import read_exr
+from .checkpoint import save_checkpoint
+from .model import DenoiserNet, paper_config
 from .msnet import DEFAULT, MSNet, pad_to_multiple
 from .preprocess import ALBEDO, COV, DIFFUSE, SPECULAR, VAR, preprocess, raw_from_channels, targets
+from .recon import reconstruct as _recon_v1
 from .recon_ms import reconstruct
 
 COV_FEATURES = [i for i in range(len(FEATURES_FULL)) if i not in NOCOV_INDICES]
@@ -189,15 +193,39 @@ def batch_inputs(raw, ref, maxima, cov_dropout: float, g: torch.Generator, crop:
 # ----- training -----------------------------------------------------------------------
 
 
-def forward(net: MSNet, b: dict[str, torch.Tensor], autocast: bool):
+class Lin2020Pair(nn.Module):
+    """The paper's network (Lin et al. 2020 at its published size, contract v1): one
+    `DenoiserNet` per component, trained here with the same data and recipe as `MSNet`."""
+
+    size_multiple = 1
+
+    def __init__(self, in_features: int = len(FEATURES_FULL), **config):
+        super().__init__()
+        cfg = {**paper_config(in_features), **config}
+        self.diffuse, self.specular = DenoiserNet(**cfg), DenoiserNet(**cfg)
+        self.config = {"arch": "lin2020", **self.diffuse.config}
+
+    def forward(self, diffuse, specular, features):
+        return self.diffuse(diffuse, features), self.specular(specular, features)
+
+    def flops_per_pixel(self) -> int:
+        return self.diffuse.flops_per_pixel() + self.specular.flops_per_pixel()
+
+    def description(self) -> str:
+        return "lin2020 pair: " + self.diffuse.description()
+
+
+def forward(net, b: dict[str, torch.Tensor], autocast: bool):
     with torch.autocast(device_type=b["diffuse"].device.type, dtype=torch.bfloat16, enabled=autocast):
         out = net(b["diffuse"], b["specular"], b["features"])
     out = [o.float() for o in out]
+    if isinstance(net, Lin2020Pair):
+        return _recon_v1(out[0], out[1], b["diffuse"][:, :3], b["specular"][:, :3], b["albedo"])
     return reconstruct(out, net.levels, b["diffuse"], b["specular"], b["albedo"])
 
 
 @torch.no_grad()
-def denoise_whole(net: MSNet, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool = False) -> torch.Tensor:
+def denoise_whole(net, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool = False) -> torch.Tensor:
     """Whole frames [N, 20, H, W] denoised (padded to the network's size multiple): [N, 3, H, W]."""
     h, w = raw.shape[-2:]
     b = preprocess(raw, maxima[:, 0], maxima[:, 1], "full")
@@ -221,6 +249,25 @@ def validate(net: MSNet, val: FrameSet, zero_cov: bool = False) -> dict[str, flo
     net.train()
     return {"relmse": float(np.mean(rel)), "dssim": float(np.mean(dssim)), "input_relmse": float(np.mean(inp)),
             "score": float(np.mean(np.log(rel)) + np.mean(np.log(np.maximum(dssim, 1e-6))))}
+
+
+def export_lin2020(checkpoint: Path, models: Path) -> None:
+    """The paper's pair as contract-v1 files in `models/lin2020/`, named variant `lin2020`."""
+    import onnx
+
+    from .checkpoint import load_checkpoint
+    from .export import export_onnx
+
+    nets, _ = load_checkpoint(checkpoint)
+    for c, net in nets.items():
+        path = models / "lin2020" / f"{c}.onnx"
+        export_onnx(net, path, c, "full")
+        proto = onnx.load(str(path))
+        for p in proto.metadata_props:
+            if p.key == "mcdenoise.variant":
+                p.value = "lin2020"
+        onnx.save(proto, str(path))
+        print(f"{path}: {net.param_count()} params, {net.flops_per_pixel()} FLOP/px", file=sys.stderr)
 
 
 def parse(argv=None) -> argparse.Namespace:
@@ -247,6 +294,10 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--arch", choices=("msnet", "lin2020"), default="msnet")
+    p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
+    p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
+    p.add_argument("--lin-predictor-width", type=int, default=128, help="lin2020: predictor width (paper: 128)")
     p.add_argument("--ext-width", type=int, default=DEFAULT["ext_width"])
     p.add_argument("--ext-blocks", type=int, default=DEFAULT["ext_blocks"])
     p.add_argument("--enc", default=",".join(map(str, DEFAULT["enc"])))
@@ -277,9 +328,14 @@ def main(argv=None) -> int:
     print(f"{len(train)} training / {len(val)} validation frames loaded in {time.time() - t_load:.0f} s",
           file=sys.stderr, flush=True)
     torch.manual_seed(a.seed)
-    net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
-                enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
-                kernel_size=a.kernel_size, levels=a.levels).to(dev).to(memory_format=torch.channels_last)
+    if a.arch == "lin2020":
+        net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
+        a.cov_dropout = 0.0  # the paper's network always has covariance
+    else:
+        net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
+                    enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
+                    kernel_size=a.kernel_size, levels=a.levels)
+    net = net.to(dev).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=a.lr)
 
     def schedule(total: int, done: int = 0):
@@ -365,11 +421,17 @@ def main(argv=None) -> int:
                   f"(input {v.get('input_relmse', float('nan')):.4f})", file=sys.stderr, flush=True)
             if v["score"] < best:
                 best = v["score"]
-                torch.save({"config": net.config, "state_dict": {k: t.detach().cpu() for k, t in net.state_dict().items()},
+                if isinstance(net, Lin2020Pair):
+                    save_checkpoint(out / "best.pt", {"diffuse": net.diffuse, "specular": net.specular},
+                                    step=step, val=v, train_config=vars(a))
+                else:
+                    torch.save({"config": net.config, "state_dict": {k: t.detach().cpu() for k, t in net.state_dict().items()},
                             "step": step, "val": v}, out / "best.pt")
             save_state()
     log.close()
-    if a.export:
+    if a.export and a.arch == "lin2020":
+        export_lin2020(out / "best.pt", Path(a.export))
+    elif a.export:
         from . import export_ms
 
         export_ms.main(["--checkpoint", str(out / "best.pt"), "--out", a.export])
