@@ -108,3 +108,12 @@ fuzz: setup
 
 fuzz-cmin: setup
 	cd fuzz && for t in $(FUZZ_TARGETS); do cargo +nightly fuzz cmin -s none $$t corpus/$$t -- -max_len=65536 || exit 1; done
+
+## Production network (contract v2, docs/training.md): trains msnet on DATA in the
+## background-friendly, resumable way; on a GPU machine use scripts/gpu-pipeline.
+MS_RUN ?= runs/ms
+MS_ARGS ?= --steps 20000 --batch 8 --patch 96 --val-every 500
+.PHONY: train-ms
+train-ms: build
+	cd training && $(PY) -m mcdenoise_train.train_ms --data $(abspath $(DATA)) --out $(abspath $(MS_RUN)) \
+	  --device cpu $(MS_ARGS) --resume --export $(abspath $(MS_RUN))/models
