@@ -179,26 +179,77 @@ def test_scene_generator_is_seeded_and_varied():
 
 
 def test_dataset_cli_manifest_split_resume(tmp_path):
-    args = ["--out", str(tmp_path), "--scenes", "2", "--size", "16", "--spp", "2,4", "--ref-spp", "8",
-            "--val-fraction", "0.5", "--no-progress", "--kinds", "cornell"]
+    out, test_out = tmp_path / "d", tmp_path / "d-test"
+    args = ["--out", str(out), "--scenes", "2", "--size", "16", "--spp", "1,2,4", "--ref-spp", "8",
+            "--val-fraction", "0.5", "--no-progress", "--families", "cornell", "--test-scenes", "1"]
     assert dataset.main(args) == 0
-    recs = dataset.read_manifest(tmp_path / "manifest.jsonl")
+    recs = dataset.read_manifest(out / "manifest.jsonl")
     assert [r["split"] for r in recs] == ["train", "val"]
     for r in recs:
-        assert set(r["frames"]) == {"2", "4", "ref"}
-        for f in r["frames"].values():
-            assert exr_io.is_complete(tmp_path / f["path"])  # relative to --out
-        assert all(np.isfinite(v) and v > 0 for v in r["ref_variance_ratio"]["4"].values())
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["rendered"] == 2
+        assert r["seed"] < dataset.TEST_SEED_BASE and (r["renderer"], r["family"]) == ("mitsuba", "cornell")
+        assert set(r["frames"]) == {"1", "2", "4", "ref"}
+        for k, f in r["frames"].items():
+            assert exr_io.is_complete(out / f["path"], exr_io.CHANNELS if k != "ref" else exr_io.CHANNELS_NOCOV)
+            assert f["seed"] == r["seed"] and f["spp"] == (8 if k == "ref" else int(k))
+        # the reference's noise floor is recorded and lies below every input's error
+        assert 0 < r["frames"]["ref"]["noise_floor"] < min(r["frames"][s]["rel_error"] for s in ("1", "2", "4"))
+        assert all(np.isfinite(v) and v > 0 for v in r["ref_variance_ratio"]["1"].values())
+        assert r["timings"]["noisy"]["seconds"] > 0 and r["timings"]["ref"]["seconds"] > 0
+    # the test set: its own directory, disjoint seeds, split "test"
+    (t,) = dataset.read_manifest(test_out / "manifest.jsonl")
+    assert t["split"] == "test" and t["seed"] >= dataset.TEST_SEED_BASE
+    assert (test_out / t["frames"]["ref"]["path"]).is_file() and not list(out.glob("test"))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["rendered"] == 3 and summary["frames"] == 12
+    assert summary["mean_seconds_per_scene"]["noisy"]["seconds"] > 0
     # resume: nothing to do; then one missing frame makes that scene render again
     assert dataset.main(args) == 0
-    assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2
-    (tmp_path / recs[1]["frames"]["2"]["path"]).unlink()
+    assert json.loads((out / "summary.json").read_text())["skipped"] == 3
+    (out / recs[1]["frames"]["2"]["path"]).unlink()
     assert dataset.main(args) == 0
-    s = json.loads((tmp_path / "summary.json").read_text())
-    assert (s["rendered"], s["skipped"]) == (1, 1)
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["rendered"], s["skipped"]) == (1, 2)
     assert not list(tmp_path.rglob("*.tmp"))
+    # a test set never shares a directory with training data
+    with pytest.raises(SystemExit):
+        dataset.main(["--out", str(tmp_path / "x"), "--test-out", str(out), "--scenes", "0", "--test-scenes", "1",
+                      "--size", "8", "--spp", "2", "--ref-spp", "4", "--no-progress"])
+
+
+def test_dataset_workers_share_one_manifest(tmp_path):
+    args = ["--out", str(tmp_path), "--scenes", "3", "--size", "12", "--spp", "2,4", "--ref-spp", "4",
+            "--no-progress", "--families", "cornell", "--workers", "2"]
+    assert dataset.main(args) == 0
+    recs = dataset.read_manifest(tmp_path / "manifest.jsonl")
+    assert sorted(r["index"] for r in recs) == [0, 1, 2] and all(r["complete"] for r in recs)
+    assert sorted(r["worker"] for r in recs) == [0, 0, 1]  # scene i on worker i mod 2
+    assert len((tmp_path / "manifest.jsonl").read_text().splitlines()) == 3
+    assert dataset.main(args) == 0
+    assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 3
+
+
+def test_half_precision_frames(cornell, tmp_path):
+    import OpenEXR
+
+    ch, meta = render.frame_channels(cornell[0])
+    exr_io.write_frame(tmp_path / "h.exr", ch, meta, precision="half")
+    with OpenEXR.File(str(tmp_path / "h.exr"), separate_channels=True) as f:
+        types = {k: c.pixels.dtype for k, c in f.channels().items()}
+    assert all(t == (np.float32 if "Variance" in k else np.float16) for k, t in types.items()), types
+    back, _ = exr_io.read_frame(tmp_path / "h.exr")
+    for k, v in ch.items():
+        np.testing.assert_allclose(back[k], v, rtol=1e-3, atol=1e-4 if "Variance" not in k else 0, err_msg=k)
+
+
+def test_one_spp_frame_has_variance():
+    spec = scenes.cornell(5)
+    scene = scenes.build(spec, 24, 24)
+    pa = scenes.camera_params(spec, 24)["pixel_angle"]
+    frames = {}
+    render.render_ladder(scene, 24, 24, [1, 4], 3, pa, Options(), on_frame=lambda s, m, t: frames.update({s: m}))
+    assert sorted(frames) == [1, 4] and frames[1].n == 1 and frames[4].n == 4
+    v1, v4 = frames[1].var_of_mean("color").mean(), frames[4].var_of_mean("color").mean()
+    assert v1 > 0 and 2.0 < v1 / v4 < 8.0  # expected 4
 
 
 def test_committed_fixture_frames():

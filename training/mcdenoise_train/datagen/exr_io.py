@@ -1,7 +1,12 @@
 """Frames as OpenEXR files in the layout of docs/frame-layout.md.
 
-Single-part scanline files, float32 samples, ZIP compression, channel names exactly as
-the engine reads them. Metadata (scene, seed, spp, covariance scale, ...) goes into
+Single-part scanline files, ZIP compression (lossless), channel names exactly as the
+engine reads them. Data sets are written in half float (`precision="half"`): every image
+channel as half, every `*Variance` channel as float32, because variances span more
+decades than half holds (a pixel on the edge of a directly seen sun has a variance above
+half's maximum of 65504, a dim diffuse wall one below its smallest normal value, 6e-5). An
+image channel whose values exceed the half range is kept in float32 as well. Test fixtures
+stay float32 throughout (`precision="float"`). Metadata (scene, seed, spp, covariance scale, ...) goes into
 string/float header attributes prefixed `mcdenoise.`. Files are written atomically: to a
 temporary name in the same directory, then renamed, so an interrupted run never leaves a
 truncated frame under the final name.
@@ -41,14 +46,28 @@ def _attr(v):
     return json.dumps(v)
 
 
-def write_frame(path, channels: dict, meta: dict | None = None, compression=OpenEXR.ZIP_COMPRESSION) -> None:
-    """Write `channels` (name -> (H, W) array) atomically as a float32 single-part EXR."""
+HALF_MAX = 65504.0
+
+
+def _pixels(name: str, v, precision: str):
+    v = np.ascontiguousarray(v, np.float32)
+    if precision == "half" and "Variance" not in name and float(np.max(np.abs(v), initial=0.0)) < HALF_MAX:
+        return v.astype(np.float16)
+    return v
+
+
+def write_frame(path, channels: dict, meta: dict | None = None, compression=OpenEXR.ZIP_COMPRESSION,
+                precision: str = "float") -> None:
+    """Write `channels` (name -> (H, W) array) atomically as a single-part EXR, float32
+    (`precision="float"`) or half float for image channels (`"half"`, see above)."""
+    if precision not in ("float", "half"):
+        raise ValueError(f"precision must be 'float' or 'half', not {precision!r}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = {"compression": compression, "type": OpenEXR.scanlineimage}
     for k, v in (meta or {}).items():
         header[f"mcdenoise.{k}"] = _attr(v)
-    data = {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}
+    data = {k: _pixels(k, v, precision) for k, v in channels.items()}
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
