@@ -82,7 +82,8 @@ def load_raw(record: dict, cache: Path | None) -> dict[str, np.ndarray | float]:
 class FrameSet:
     """Frames of one split as device tensors: raw [F, 20, H, W], ref [F, 6, H, W], maxima [F, 2]."""
 
-    def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None):
+    def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None,
+                 cache: bool = False):
         recs = []
         for d in dirs:
             recs += [(r, Path(d)) for r in read_manifest(d) if r.get("split", "train") == split]
@@ -90,7 +91,7 @@ class FrameSet:
         by_shape: dict[tuple, list] = {}
         self.names, self.spp, self.scenes = [], [], []
         for r, d in recs:
-            a = load_raw(r, d / "raw-cache")
+            a = load_raw(r, d / "raw-cache" if cache else None)
             by_shape.setdefault(a["raw"].shape, []).append(a)
             self.names.append(Path(r["noisy"]).stem)
             self.spp.append(int(r.get("spp", 0)))
@@ -286,7 +287,12 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--perceptual", type=float, default=0.0)
     p.add_argument("--val-every", type=int, default=500)
     p.add_argument("--val-frames", type=int, default=None)
+    p.add_argument("--raw-cache", action="store_true",
+                   help="keep each frame's raw buffers as .npz beside the data (faster loading next time)")
     p.add_argument("--time-limit", type=float, default=None, help="stop (saving state) after this many seconds")
+    p.add_argument("--deadline", type=float, default=None,
+                   help="unix time by which training, validation and export must be done: caps --time-budget "
+                        "and --time-limit at what is left after loading the data, less a minute for the export")
     p.add_argument("--time-budget", type=float, default=None,
                    help="fit the schedule to this many seconds of training: after 50 steps the step count is set "
                         "from the measured rate (and kept on resume)")
@@ -321,12 +327,16 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     t_load = time.time()
-    train = FrameSet(a.data, "train", dev)
-    val = FrameSet(a.data, "val", dev, a.val_frames)
+    train = FrameSet(a.data, "train", dev, cache=a.raw_cache)
+    val = FrameSet(a.data, "val", dev, a.val_frames, cache=a.raw_cache)
     if not len(train):
         raise SystemExit(f"{a.data}: no training frames")
     print(f"{len(train)} training / {len(val)} validation frames loaded in {time.time() - t_load:.0f} s",
           file=sys.stderr, flush=True)
+    if a.deadline is not None:
+        left = a.deadline - time.time() - 60
+        a.time_budget = left if a.time_budget is None else min(a.time_budget, left)
+        a.time_limit = left if a.time_limit is None else min(a.time_limit, left)
     torch.manual_seed(a.seed)
     if a.arch == "lin2020":
         net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
