@@ -90,8 +90,11 @@ class FrameSet:
         recs = recs[:limit]
         by_shape: dict[tuple, list] = {}
         self.names, self.spp, self.scenes = [], [], []
-        for r, d in recs:
-            a = load_raw(r, d / "raw-cache" if cache else None)
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+            loaded = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if cache else None), recs))
+        for (r, d), a in zip(recs, loaded):
             by_shape.setdefault(a["raw"].shape, []).append(a)
             self.names.append(Path(r["noisy"]).stem)
             self.spp.append(int(r.get("spp", 0)))
