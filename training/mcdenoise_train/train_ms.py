@@ -334,6 +334,9 @@ def main(argv=None) -> int:
     val = FrameSet(a.data, "val", dev, a.val_frames, cache=a.raw_cache)
     if not len(train):
         raise SystemExit(f"{a.data}: no training frames")
+    if min(train.raw.shape[-2:]) < a.patch + 1:
+        raise SystemExit(f"--patch {a.patch} needs frames of at least {a.patch + 1} pixels a side "
+                         f"(the training frames are {train.raw.shape[-1]}x{train.raw.shape[-2]})")
     print(f"{len(train)} training / {len(val)} validation frames loaded in {time.time() - t_load:.0f} s",
           file=sys.stderr, flush=True)
     if a.deadline is not None:
