@@ -170,12 +170,20 @@ def test_covariance_concave_mirror_focuses():
 def test_scene_generator_is_seeded_and_varied():
     a, b = scenes.generate(42), scenes.generate(42)
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
-    kinds = {scenes.generate(s)["kind"] for s in range(12)}
+    kinds = {scenes.generate(s)["kind"] for s in range(60)}
     assert kinds == set(scenes.KINDS)
     mats = {o["material"]["type"] for s in range(30) for o in scenes.generate(s)["objects"] if "material" in o}
     assert {"diffuse", "roughplastic", "roughconductor", "dielectric"} <= mats
     for s in range(3):
         scenes.build(scenes.generate(s), 8, 8)  # loads (meshes, textures, instances)
+
+
+@pytest.mark.parametrize("family", scenes.KINDS)
+def test_every_family_is_seeded_and_loads(family):
+    a, b = scenes.generate(7, family), scenes.generate(7, family)
+    assert a == b and a["kind"] == family and scenes.generate(8, family) != a
+    scene = scenes.build(a, 8, 8)  # curves, leaves, water, bump maps, emissive shapes load
+    assert len(scene.emitters()) >= 1 and len(scene.shapes()) >= 2
 
 
 def test_dataset_cli_manifest_split_resume(tmp_path):
@@ -235,6 +243,7 @@ def test_half_precision_frames(cornell, tmp_path):
     exr_io.write_frame(tmp_path / "h.exr", ch, meta, precision="half")
     with OpenEXR.File(str(tmp_path / "h.exr"), separate_channels=True) as f:
         types = {k: c.pixels.dtype for k, c in f.channels().items()}
+        assert f.header()["compression"] == OpenEXR.PXR24_COMPRESSION
     assert all(t == (np.float32 if "Variance" in k else np.float16) for k, t in types.items()), types
     back, _ = exr_io.read_frame(tmp_path / "h.exr")
     for k, v in ch.items():

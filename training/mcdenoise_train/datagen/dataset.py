@@ -277,6 +277,12 @@ def parse_args(argv=None):
         p.error(f"training/validation seeds must lie in [0, {TEST_SEED_BASE}) (the test seeds start there)")
     if args.test_seed_base < 0:
         p.error("--test-seed-base must be >= 0")
+    if args.families:
+        from .scenes import KINDS
+
+        unknown = [f for f in args.families.split(",") if f not in KINDS]
+        if unknown:
+            p.error(f"unknown scene families {', '.join(unknown)}; families: {', '.join(KINDS)}")
     args.spps = sorted({int(s) for s in args.spp.split(",") if s.strip()})
     if not args.spps or args.spps[0] < 1:
         p.error("--spp needs positive sample counts")
