@@ -95,9 +95,14 @@ def buffers(p: dict) -> dict:
     rgb = lambda name: np.stack([p[f"{name}.{c}"] for c in "RGB"], -1)  # noqa: E731
     color = rgb("Combined")
     diffuse = (rgb("Diffuse Direct") + rgb("Diffuse Indirect")) * rgb("Diffuse Color")
+    # everything else, from its own passes (so that diffuse + specular = Combined is a check
+    # of the pass setup, not an identity; the engine's reader takes Combined - diffuse)
+    specular = ((rgb("Glossy Direct") + rgb("Glossy Indirect")) * rgb("Glossy Color")
+                + (rgb("Transmission Direct") + rgb("Transmission Indirect")) * rgb("Transmission Color")
+                + rgb("Emission") + rgb("Environment"))
     depth = p["Denoising Depth.Z"] if "Denoising Depth.Z" in p else p["Depth.Z"]
     depth = np.where(depth >= 1e9, 0.0, depth)
-    return {"color": color, "diffuse": diffuse, "specular": color - diffuse, "albedo": rgb("Denoising Albedo"),
+    return {"color": color, "diffuse": diffuse, "specular": specular, "albedo": rgb("Denoising Albedo"),
             "normal": np.stack([p[f"Denoising Normal.{c}"] for c in "XYZ"], -1), "depth": depth[..., None]}
 
 
