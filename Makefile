@@ -30,19 +30,33 @@ serve: build
 
 ## Training data (docs/training-data.md). `make dataset N=100 SIZE=256` renders N procedural
 ## scenes into data/: noisy frames at each of SPP (comma-separated) and a REF_SPP reference
-## per scene, a manifest and a train/validation split by scene. Interrupted runs resume.
+## per scene, a manifest and a train/validation split by scene, plus TEST_N test scenes
+## (disjoint seeds) into data-test/. Interrupted runs resume. WORKERS processes render in
+## parallel (several feed one GPU: MI_VARIANT=cuda_ad_rgb).
 N ?= 10
+TEST_N ?= 0
 SIZE ?= 256
-SPP ?= 4,8,16,32,64,128
+SPP ?= 1,2,4,8,16,32,64,128
 REF_SPP ?= 4096
 VAL_FRACTION ?= 0.1
 DATA ?= data
+WORKERS ?= 1
+MI_VARIANT ?= llvm_ad_rgb
+DATAGEN_ARGS ?=
 
-.PHONY: dataset fixtures
+.PHONY: dataset datagen-timing fixtures
 
 dataset: setup
 	cd training && $(PY) -m mcdenoise_train.datagen.dataset --out $(abspath $(DATA)) --scenes $(N) \
-	  --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --val-fraction $(VAL_FRACTION)
+	  --test-scenes $(TEST_N) --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --val-fraction $(VAL_FRACTION) \
+	  --workers $(WORKERS) --variant $(MI_VARIANT) $(DATAGEN_ARGS)
+
+## Times the generator: 6 scenes at SIZE into a scratch directory; summary.json (printed)
+## gives frames/h and, per scene, the seconds of each launch (tracing, compilation, execution).
+datagen-timing: setup
+	rm -rf target/datagen-timing
+	cd training && $(PY) -m mcdenoise_train.datagen.dataset --out $(CURDIR)/target/datagen-timing --scenes 6 \
+	  --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --workers $(WORKERS) --variant $(MI_VARIANT) --no-progress
 
 ## Regenerates the committed test frames in tests/fixtures/frames (see its README).
 fixtures: setup

@@ -10,7 +10,11 @@
 - the covariance operators: a flat mirror is plain travel, a concave mirror of curvature
   k focuses collimated light at 1/(2k);
 - the data set CLI writes a manifest, splits by scene and resumes;
-- the committed fixture frames are complete and small.
+- the committed fixture frames are complete and small;
+- Blender Cycles frames (when a Python with bpy is installed, scripts/setup-bpy): every
+  channel present, diffuse + specular (each from its own passes) = Combined, variances
+  from independent renders agree with the observed error (factor 2), and the engine reads
+  them with no variance missing.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ mi = set_variant("llvm_ad_rgb")
 import drjit as dr  # noqa: E402
 
 from mcdenoise_train.datagen import covariance as cv  # noqa: E402
-from mcdenoise_train.datagen import dataset, exr_io, render, scenes  # noqa: E402
+from mcdenoise_train.datagen import cycles, dataset, exr_io, render, scenes  # noqa: E402
 from mcdenoise_train.datagen.integrator import LUM, Options  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -170,12 +174,20 @@ def test_covariance_concave_mirror_focuses():
 def test_scene_generator_is_seeded_and_varied():
     a, b = scenes.generate(42), scenes.generate(42)
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
-    kinds = {scenes.generate(s)["kind"] for s in range(12)}
+    kinds = {scenes.generate(s)["kind"] for s in range(60)}
     assert kinds == set(scenes.KINDS)
     mats = {o["material"]["type"] for s in range(30) for o in scenes.generate(s)["objects"] if "material" in o}
     assert {"diffuse", "roughplastic", "roughconductor", "dielectric"} <= mats
     for s in range(3):
         scenes.build(scenes.generate(s), 8, 8)  # loads (meshes, textures, instances)
+
+
+@pytest.mark.parametrize("family", scenes.KINDS)
+def test_every_family_is_seeded_and_loads(family):
+    a, b = scenes.generate(7, family), scenes.generate(7, family)
+    assert a == b and a["kind"] == family and scenes.generate(8, family) != a
+    scene = scenes.build(a, 8, 8)  # curves, leaves, water, bump maps, emissive shapes load
+    assert len(scene.emitters()) >= 1 and len(scene.shapes()) >= 2
 
 
 def test_dataset_cli_manifest_split_resume(tmp_path):
@@ -235,6 +247,7 @@ def test_half_precision_frames(cornell, tmp_path):
     exr_io.write_frame(tmp_path / "h.exr", ch, meta, precision="half")
     with OpenEXR.File(str(tmp_path / "h.exr"), separate_channels=True) as f:
         types = {k: c.pixels.dtype for k, c in f.channels().items()}
+        assert f.header()["compression"] == OpenEXR.PXR24_COMPRESSION
     assert all(t == (np.float32 if "Variance" in k else np.float16) for k, t in types.items()), types
     back, _ = exr_io.read_frame(tmp_path / "h.exr")
     for k, v in ch.items():
@@ -261,3 +274,54 @@ def test_committed_fixture_frames():
         ch, _ = exr_io.read_frame(f)
         want = LAYOUT - {"covariance", "covarianceVariance.Z"} if "nocov" in f.name else LAYOUT
         assert set(ch) == want, f.name
+
+
+needs_bpy = pytest.mark.skipif(not cycles.available(), reason="no Python with bpy (run scripts/setup-bpy)")
+
+
+@pytest.fixture(scope="module")
+def cycles_frames():
+    # 24x24 Cornell box: 16 spp (8 renders of 2) and an independent 512-spp reference
+    return cycles.render_frames(scenes.cornell(5), 24, 24, [16], 512, 5)[0]
+
+
+@needs_bpy
+def test_cycles_frame_channels_and_split(cycles_frames, tmp_path):
+    ch, meta = cycles_frames[16]
+    assert set(ch) == set(exr_io.CHANNELS_NOCOV) and meta == {"spp": 16, "renders": 8}
+    assert all(np.isfinite(v).all() and v.shape == (24, 24) for v in ch.values())
+    for c in "RGB":  # specular is built from the glossy/transmission/emission/environment passes
+        split = ch[f"diffuse.{c}"] + ch[f"specular.{c}"]
+        assert np.all(np.abs(split - ch[c]) <= 1e-4 * (1.0 + np.abs(ch[c]))), c
+    assert ch["diffuse.G"].mean() > 0.05 and ch["specular.G"].mean() > 0.005
+    assert ch["depth.Z"].max() < 100 and (ch["albedo.G"] > 0).mean() > 0.9
+
+
+@needs_bpy
+@pytest.mark.parametrize("buf", ["color", "diffuse", "specular"])
+def test_cycles_variance_matches_error(cycles_frames, buf):
+    (xn, _), (xr, _) = cycles_frames[16], cycles_frames["ref"]
+    names = ("R", "G", "B") if buf == "color" else tuple(f"{buf}.{c}" for c in "RGB")
+    lum = lambda ch: sum(w * ch[n] for w, n in zip(LUM, names))  # noqa: E731
+    rel = 1.0 / (lum(xr) ** 2 + 0.01)
+    err = sum(w * (xn[n] - xr[n]) ** 2 for w, n in zip(LUM, names)) * rel
+    var = (xn[f"{buf}Variance.Z"] + xr[f"{buf}Variance.Z"]) * rel
+    ratio = err.mean() / var.mean()
+    assert 1 / VARIANCE_FACTOR < ratio < VARIANCE_FACTOR, f"cycles/{buf}: error/variance = {ratio:.3f}"
+
+
+@needs_bpy
+def test_engine_reads_cycles_frames_with_every_variance(cycles_frames, tmp_path):
+    import os
+    import subprocess
+
+    binary = os.environ.get("MCDENOISE_BIN") or str(REPO / "target" / "release" / "mcdenoise")
+    if not Path(binary).is_file() or not os.environ.get("ORT_DYLIB_PATH"):
+        pytest.skip("needs the engine (make build) and ORT_DYLIB_PATH")
+    ch, meta = cycles_frames[16]
+    exr_io.write_frame(tmp_path / "c.exr", ch, meta, precision="half")
+    r = subprocess.run([binary, "run", str(tmp_path / "c.exr"), "-o", str(tmp_path / "out.exr"),
+                        "--models", str(REPO / "models")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    report = json.loads(r.stdout)
+    assert report["missing_variances"] == [] and report["variant"] == "nocov"

@@ -211,6 +211,46 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
     return rec
 
 
+def render_scene_cycles(spec, width, height, spps, ref_spp, out_paths, max_depth=6, progress=None, root=None,
+                        precision="half", streams=None):
+    """Render a scene's frames with Blender Cycles (all of them: Cycles frames are made in
+    one Blender session); returns the manifest record (see cycles.py)."""
+    from . import cycles, exr_io
+
+    def rel(p):
+        return os.path.relpath(p, root) if root is not None else str(p)
+
+    t0 = time.perf_counter()
+    res, secs = cycles.render_frames(spec, width, height, spps, ref_spp, spec["seed"], max_depth,
+                                     streams or cycles.STREAMS)
+    if progress:
+        progress(max(spps) + ref_spp)
+    base = {"scene": spec["name"], "seed": spec["seed"], "kind": spec["kind"], "family": spec["kind"],
+            "width": width, "height": height, "max_depth": max_depth, "renderer": "Blender Cycles (bpy)"}
+    rec = {"scene": spec["name"], "seed": spec["seed"], "kind": spec["kind"], "family": spec["kind"],
+           "renderer": "cycles", "width": width, "height": height, "spp": sorted(int(s) for s in spps),
+           "ref_spp": ref_spp, "frames": {}, "timings": {"render": round(secs, 3)}}
+    tw = time.perf_counter()
+    for key, (ch, meta) in res.items():
+        meta.update(base, seconds=round(secs, 3), reference=key == "ref")
+        exr_io.write_frame(out_paths[key], ch, meta, precision=precision)
+        rec["frames"][str(key)] = {"path": rel(out_paths[key]), "seconds": round(secs, 3), "renderer": "cycles",
+                                   "family": spec["kind"], "seed": spec["seed"],
+                                   "spp": ref_spp if key == "ref" else int(key), "renders": meta["renders"]}
+    if "ref" in res:
+        ref_ch = res["ref"][0]
+        noisy = {s: res[s][0] for s in spps}
+        rec["ref_variance_ratio"] = error_ratios(ref_ch, noisy)
+        floor, errs = noise_floor(ref_ch, noisy)
+        rec["frames"]["ref"]["noise_floor"] = round(floor, 9)
+        for s_, e in errs.items():
+            rec["frames"][s_]["rel_error"] = round(e, 9)
+            rec["frames"][s_]["noise_floor_ratio"] = round(floor / max(e, 1e-30), 6)
+    rec["timings"]["write"] = round(time.perf_counter() - tw, 3)
+    rec["seconds"] = round(time.perf_counter() - t0, 3)
+    return rec
+
+
 def _mi_version():
     import mitsuba
 
@@ -260,6 +300,9 @@ def parse_args(argv=None):
                    help="also render M test scenes (disjoint seeds) into --test-out")
     p.add_argument("--test-out", type=Path, default=None, help="test set directory (default: <out>-test)")
     p.add_argument("--test-seed-base", type=int, default=0, help="offset of the test seeds within their range")
+    p.add_argument("--renderer", choices=("mitsuba", "cycles", "both"), default="mitsuba",
+                   help="Mitsuba (our integrator, with covariance), Blender Cycles (no covariance) or both "
+                        "(every scene twice, the Cycles one named <scene>-cycles, in the same split)")
     p.add_argument("--frames", choices=("all", "noisy", "ref"), default="all")
     p.add_argument("--variant", default=None, help="Mitsuba variant (llvm_ad_rgb; cuda_ad_rgb on a GPU)")
     p.add_argument("--workers", type=int, default=1, help="rendering processes (scene i on worker i mod K)")
@@ -277,9 +320,17 @@ def parse_args(argv=None):
         p.error(f"training/validation seeds must lie in [0, {TEST_SEED_BASE}) (the test seeds start there)")
     if args.test_seed_base < 0:
         p.error("--test-seed-base must be >= 0")
+    if args.families:
+        from .scenes import KINDS
+
+        unknown = [f for f in args.families.split(",") if f not in KINDS]
+        if unknown:
+            p.error(f"unknown scene families {', '.join(unknown)}; families: {', '.join(KINDS)}")
     args.spps = sorted({int(s) for s in args.spp.split(",") if s.strip()})
     if not args.spps or args.spps[0] < 1:
         p.error("--spp needs positive sample counts")
+    if args.renderer != "mitsuba" and args.frames != "all":
+        p.error("--frames applies to Mitsuba only (Cycles renders all frames of a scene in one session)")
     if args.test_scenes and args.test_out is None:
         args.test_out = args.out.parent / (args.out.name + "-test")
     if args.test_out is not None and args.test_out.resolve() == args.out.resolve():
@@ -288,14 +339,17 @@ def parse_args(argv=None):
 
 
 def _jobs(args):
-    """All scenes of the run as (order, data set dir, split, index, seed): test scenes
+    """All scenes of the run as (data set dir, split, index, seed, renderer): test scenes
     first (a fixed set, done even when --max-minutes cuts the run short), then the rest."""
+    renderers = ("mitsuba", "cycles") if args.renderer == "both" else (args.renderer,)
     jobs = []
     for i in range(args.test_scenes):
-        jobs.append((args.test_out, "test", i, TEST_SEED_BASE + args.test_seed_base + i))
+        for r in renderers:
+            jobs.append((args.test_out, "test", i, TEST_SEED_BASE + args.test_seed_base + i, r))
     for i in range(args.scenes):
         split = "val" if is_validation(i, args.val_fraction) else "train"
-        jobs.append((args.out, split, i, args.seed_base + i))
+        for r in renderers:
+            jobs.append((args.out, split, i, args.seed_base + i, r))
     return jobs
 
 
@@ -340,13 +394,16 @@ def _work(worker: int, args, progress_q=None) -> dict:
                    for r in read_manifest(d / "manifest.jsonl") if r.get("complete")}
     per_scene = (max(args.spps) if args.frames != "ref" else 0) + (args.ref_spp if args.frames != "noisy" else 0)
     tot = {"rendered": 0, "skipped": 0, "not_started": 0, "frames": 0, "records": []}
-    for j, (out, split, i, seed) in enumerate(_jobs(args)):
+    for j, (out, split, i, seed, renderer) in enumerate(_jobs(args)):
         if j % args.workers != worker:
             continue
         if deadline is not None and time.time() > deadline:
             tot["not_started"] += 1
             continue
         spec = _spec_of(seed, families)
+        if renderer == "cycles":
+            spec["name"] += "-cycles"
+        expect = exr_io.CHANNELS if covariance and renderer == "mitsuba" else exr_io.CHANNELS_NOCOV
         paths = frame_paths(out, spec["name"], split, args.spps, args.ref_spp > 0)
         key = (spec["name"], width, height, tuple(args.spps), args.ref_spp)
         wanted = [(paths[s], expect) for s in args.spps] if args.frames != "ref" else []
@@ -362,8 +419,13 @@ def _work(worker: int, args, progress_q=None) -> dict:
         spec_path = out / "specs" / f"{spec['name']}.json"
         spec_path.write_text(json.dumps(spec, indent=1, sort_keys=True))
         step = (lambda k: progress_q.put(("spp", k, None))) if progress_q is not None else None
-        rec = render_scene(spec, width, height, args.spps, args.ref_spp, paths, opts, args.frames, args.max_lanes,
-                           progress=step, covariance=covariance, root=out, precision=args.precision)
+        if renderer == "cycles":
+            rec = render_scene_cycles(spec, width, height, args.spps, args.ref_spp, paths, args.max_depth,
+                                      progress=step, root=out, precision=args.precision)
+        else:
+            rec = render_scene(spec, width, height, args.spps, args.ref_spp, paths, opts, args.frames,
+                               args.max_lanes, progress=step, covariance=covariance, root=out,
+                               precision=args.precision)
         complete = all(exr_io.is_complete(p_, expect if k != "ref" else exr_io.CHANNELS_NOCOV)
                        for k, p_ in paths.items())
         rec.update(split=split, index=i, spec=os.path.relpath(spec_path, out), variant=mi.variant(),
@@ -399,6 +461,9 @@ def summarize(args, results: list[dict], wall: float, variant: str) -> dict:
                               ("seconds", "trace_seconds", "compile_seconds", "execute_seconds")}
             timing[launch]["kernel_cache_hits"] = sum(bool(s["kernel_cache_hit"]) for s in st)
             timing[launch]["launches"] = len(st)
+    cyc = [r["timings"]["render"] for r in recs if "render" in r["timings"]]
+    if cyc:
+        timing["cycles_render"] = _mean(cyc)
     timing["build"] = _mean([r["timings"].get("build") for r in recs])
     timing["write"] = _mean([r["timings"].get("write") for r in recs])
     timing["scene"] = _mean([r["seconds"] for r in recs])
@@ -408,7 +473,7 @@ def summarize(args, results: list[dict], wall: float, variant: str) -> dict:
         "scenes": args.scenes, "test_scenes": args.test_scenes, "rendered": n_rendered,
         "skipped": sum(t["skipped"] for t in results), "not_started": sum(t["not_started"] for t in results),
         "frames": n_frames, "width": args.size, "height": args.height or args.size, "spp": args.spps,
-        "ref_spp": args.ref_spp, "variant": variant, "covariance": not args.no_covariance,
+        "ref_spp": args.ref_spp, "renderer": args.renderer, "variant": variant, "covariance": not args.no_covariance,
         "precision": args.precision, "workers": args.workers, "wall_seconds": round(wall, 2),
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
         "mean_seconds_per_scene": timing,

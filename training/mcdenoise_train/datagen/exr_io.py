@@ -1,12 +1,14 @@
 """Frames as OpenEXR files in the layout of docs/frame-layout.md.
 
-Single-part scanline files, ZIP compression (lossless), channel names exactly as the
-engine reads them. Data sets are written in half float (`precision="half"`): every image
-channel as half, every `*Variance` channel as float32, because variances span more
-decades than half holds (a pixel on the edge of a directly seen sun has a variance above
-half's maximum of 65504, a dim diffuse wall one below its smallest normal value, 6e-5). An
-image channel whose values exceed the half range is kept in float32 as well. Test fixtures
-stay float32 throughout (`precision="float"`). Metadata (scene, seed, spp, covariance scale, ...) goes into
+Single-part scanline files, channel names exactly as the engine reads them. Data sets are
+written in half float (`precision="half"`) with PXR24 compression: every image channel as
+half (compressed losslessly), every `*Variance` channel as float32 rounded to 24 bits
+(relative precision 1.5e-5), because variances span more decades than half holds (a pixel
+on the edge of a directly seen sun has a variance above half's maximum of 65504, a dim
+diffuse wall one far below its smallest normal value, 6e-5, and the engine divides diffuse
+variance by the squared albedo). An image channel whose values exceed the half range is
+kept in float32 as well. A 256x256 frame takes 1-2 MB. Test fixtures stay float32 with
+ZIP (`precision="float"`, lossless). Metadata (scene, seed, spp, covariance scale, ...) goes into
 string/float header attributes prefixed `mcdenoise.`. Files are written atomically: to a
 temporary name in the same directory, then renamed, so an interrupted run never leaves a
 truncated frame under the final name.
@@ -56,12 +58,14 @@ def _pixels(name: str, v, precision: str):
     return v
 
 
-def write_frame(path, channels: dict, meta: dict | None = None, compression=OpenEXR.ZIP_COMPRESSION,
+def write_frame(path, channels: dict, meta: dict | None = None, compression=None,
                 precision: str = "float") -> None:
     """Write `channels` (name -> (H, W) array) atomically as a single-part EXR, float32
     (`precision="float"`) or half float for image channels (`"half"`, see above)."""
     if precision not in ("float", "half"):
         raise ValueError(f"precision must be 'float' or 'half', not {precision!r}")
+    if compression is None:
+        compression = OpenEXR.PXR24_COMPRESSION if precision == "half" else OpenEXR.ZIP_COMPRESSION
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = {"compression": compression, "type": OpenEXR.scanlineimage}
