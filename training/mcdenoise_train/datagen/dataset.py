@@ -60,6 +60,13 @@ TEST_SEED_BASE = 1_000_000_000
 CLEAN_REF_RATIO = 0.25
 
 
+def _sizes(rec: dict, root) -> None:
+    for f in rec["frames"].values():
+        p = Path(root) / f["path"] if root is not None else Path(f["path"])
+        if p.is_file():
+            f["bytes"] = p.stat().st_size
+
+
 def mark_clean(rec: dict) -> None:
     """Set `ref_clean` from the frames' noise_floor_ratio (see CLEAN_REF_RATIO)."""
     ratios = [f["noise_floor_ratio"] for k, f in rec["frames"].items() if k != "ref" and "noise_floor_ratio" in f]
@@ -219,6 +226,7 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
     rec["timings"]["write"] = round(t_write, 3)
     rec["seconds"] = round(time.perf_counter() - t0, 3)
     mark_clean(rec)
+    _sizes(rec, root)
     return rec
 
 
@@ -260,6 +268,7 @@ def render_scene_cycles(spec, width, height, spps, ref_spp, out_paths, max_depth
     rec["timings"]["write"] = round(time.perf_counter() - tw, 3)
     rec["seconds"] = round(time.perf_counter() - t0, 3)
     mark_clean(rec)
+    _sizes(rec, root)
     return rec
 
 
@@ -491,6 +500,10 @@ def summarize(args, results: list[dict], wall: float, variant: str) -> dict:
         "mean_seconds_per_scene": timing,
         "references_not_clean": sorted(r["scene"] for r in recs if r.get("ref_clean") is False),
     }
+    sizes = [f["bytes"] for r in recs for f in r["frames"].values() if "bytes" in f]
+    if sizes:
+        summary["mean_frame_megabytes"] = round(float(np.mean(sizes)) / 1e6, 3)
+        summary["gigabytes_per_2000_frames"] = round(2000 * float(np.mean(sizes)) / 1e9, 2)
     if n_rendered:
         summary["scenes_per_hour"] = round(3600.0 * n_rendered / wall, 2)
         summary["frames_per_hour"] = round(3600.0 * n_frames / wall, 2)
