@@ -32,7 +32,8 @@ serve: build
 ## scenes into data/: noisy frames at each of SPP (comma-separated) and a REF_SPP reference
 ## per scene, a manifest and a train/validation split by scene, plus TEST_N test scenes
 ## (disjoint seeds) into data-test/. Interrupted runs resume. WORKERS processes render in
-## parallel (several feed one GPU: MI_VARIANT=cuda_ad_rgb).
+## parallel (several feed one GPU: MI_VARIANT=cuda_ad_rgb). RENDERER=both also renders every
+## scene with Blender Cycles (needs scripts/setup-bpy), RENDERER=cycles only with Cycles.
 N ?= 10
 TEST_N ?= 0
 SIZE ?= 256
@@ -42,6 +43,7 @@ VAL_FRACTION ?= 0.1
 DATA ?= data
 WORKERS ?= 1
 MI_VARIANT ?= llvm_ad_rgb
+RENDERER ?= mitsuba
 DATAGEN_ARGS ?=
 
 .PHONY: dataset datagen-timing fixtures
@@ -49,7 +51,7 @@ DATAGEN_ARGS ?=
 dataset: setup
 	cd training && $(PY) -m mcdenoise_train.datagen.dataset --out $(abspath $(DATA)) --scenes $(N) \
 	  --test-scenes $(TEST_N) --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --val-fraction $(VAL_FRACTION) \
-	  --workers $(WORKERS) --variant $(MI_VARIANT) $(DATAGEN_ARGS)
+	  --workers $(WORKERS) --variant $(MI_VARIANT) --renderer $(RENDERER) $(DATAGEN_ARGS)
 
 ## Times the generator: 6 scenes at SIZE into a scratch directory; summary.json (printed)
 ## gives frames/h and, per scene, the seconds of each launch (tracing, compilation, execution).

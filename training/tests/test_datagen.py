@@ -205,6 +205,8 @@ def test_dataset_cli_manifest_split_resume(tmp_path):
             assert f["seed"] == r["seed"] and f["spp"] == (8 if k == "ref" else int(k))
         # the reference's noise floor is recorded and lies below every input's error
         assert 0 < r["frames"]["ref"]["noise_floor"] < min(r["frames"][s]["rel_error"] for s in ("1", "2", "4"))
+        assert r["ref_clean"] == (max(r["frames"][s]["noise_floor_ratio"] for s in ("1", "2", "4"))
+                                  <= dataset.CLEAN_REF_RATIO)
         assert all(np.isfinite(v) and v > 0 for v in r["ref_variance_ratio"]["1"].values())
         assert r["timings"]["noisy"]["seconds"] > 0 and r["timings"]["ref"]["seconds"] > 0
     # the test set: its own directory, disjoint seeds, split "test"
@@ -325,3 +327,20 @@ def test_engine_reads_cycles_frames_with_every_variance(cycles_frames, tmp_path)
     assert r.returncode == 0, r.stderr
     report = json.loads(r.stdout)
     assert report["missing_variances"] == [] and report["variant"] == "nocov"
+
+
+@needs_bpy
+def test_dataset_cli_both_renderers(tmp_path):
+    args = ["--out", str(tmp_path), "--scenes", "1", "--size", "12", "--spp", "2,4", "--ref-spp", "16",
+            "--no-progress", "--families", "cornell", "--renderer", "both"]
+    assert dataset.main(args) == 0
+    recs = {r["renderer"]: r for r in dataset.read_manifest(tmp_path / "manifest.jsonl")}
+    assert set(recs) == {"mitsuba", "cycles"}
+    assert recs["cycles"]["scene"] == recs["mitsuba"]["scene"] + "-cycles"
+    assert recs["cycles"]["split"] == recs["mitsuba"]["split"] and recs["cycles"]["complete"]
+    for k, f in recs["cycles"]["frames"].items():
+        ch, meta = exr_io.read_frame(tmp_path / f["path"])
+        assert set(ch) == set(exr_io.CHANNELS_NOCOV) and f["renderer"] == "cycles"
+        assert meta["spp"] == (16 if k == "ref" else int(k))
+    assert dataset.main(args) == 0  # resumes: both complete
+    assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2

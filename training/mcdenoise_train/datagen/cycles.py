@@ -106,10 +106,11 @@ def buffers(p: dict) -> dict:
             "normal": np.stack([p[f"Denoising Normal.{c}"] for c in "XYZ"], -1), "depth": depth[..., None]}
 
 
-def combine(parts: list[dict], counts: list[int]) -> tuple[dict, dict]:
-    """Frame channels (engine layout, no covariance) and metadata from K renders."""
+def combine(parts: list[dict], counts: list[int], spp: int) -> tuple[dict, dict]:
+    """Frame channels (engine layout, no covariance) and metadata of a frame of `spp`
+    samples from its K renders (`counts` samples each)."""
     n = np.asarray(counts, np.float64)
-    if len(parts) == 2 and counts == [1, 1]:  # 1 spp: the first render, variance from both
+    if spp == 1:  # the first of two 1-spp renders, the variance from both
         mean = {k: parts[0][k].astype(np.float64) for k in parts[0]}
         var = {k: (parts[0][k].astype(np.float64) - parts[1][k]) ** 2 / 2.0 for k in parts[0]}
         spp = 1
@@ -154,7 +155,7 @@ def render_frames(spec, width, height, spps, ref_spp, seed, max_depth=6, streams
         out = {}
         for key, names in frames.items():
             parts = [buffers(read_passes(Path(tmp) / f"{nm}.exr")) for nm in names]
-            out[key] = combine(parts, [counts[nm] for nm in names])
+            out[key] = combine(parts, [counts[nm] for nm in names], ref_spp if key == "ref" else key)
     return out, secs
 
 

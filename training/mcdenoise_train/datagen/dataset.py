@@ -55,6 +55,23 @@ from .backend import set_variant
 
 #: Test scenes take seeds from here on; training/validation seeds must stay below.
 TEST_SEED_BASE = 1_000_000_000
+#: A reference is "clean" when its noise floor is at most this fraction of every input's
+#: observed error (expected: spp / ref_spp, 1/32 for 128 against 4096 spp).
+CLEAN_REF_RATIO = 0.25
+
+
+def _sizes(rec: dict, root) -> None:
+    for f in rec["frames"].values():
+        p = Path(root) / f["path"] if root is not None else Path(f["path"])
+        if p.is_file():
+            f["bytes"] = p.stat().st_size
+
+
+def mark_clean(rec: dict) -> None:
+    """Set `ref_clean` from the frames' noise_floor_ratio (see CLEAN_REF_RATIO)."""
+    ratios = [f["noise_floor_ratio"] for k, f in rec["frames"].items() if k != "ref" and "noise_floor_ratio" in f]
+    if ratios:
+        rec["ref_clean"] = bool(max(ratios) <= CLEAN_REF_RATIO)
 
 
 def is_validation(i: int, fraction: float) -> bool:
@@ -208,6 +225,8 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
             rec["frames"][s]["noise_floor_ratio"] = round(floor / max(e, 1e-30), 6)
     rec["timings"]["write"] = round(t_write, 3)
     rec["seconds"] = round(time.perf_counter() - t0, 3)
+    mark_clean(rec)
+    _sizes(rec, root)
     return rec
 
 
@@ -248,6 +267,8 @@ def render_scene_cycles(spec, width, height, spps, ref_spp, out_paths, max_depth
             rec["frames"][s_]["noise_floor_ratio"] = round(floor / max(e, 1e-30), 6)
     rec["timings"]["write"] = round(time.perf_counter() - tw, 3)
     rec["seconds"] = round(time.perf_counter() - t0, 3)
+    mark_clean(rec)
+    _sizes(rec, root)
     return rec
 
 
@@ -433,7 +454,7 @@ def _work(worker: int, args, progress_q=None) -> dict:
         append_manifest(out / "manifest.jsonl", rec)
         tot["rendered"] += 1
         tot["frames"] += len(rec["frames"])
-        tot["records"].append({k: rec[k] for k in ("scene", "timings", "frames", "seconds")})
+        tot["records"].append({k: rec.get(k) for k in ("scene", "timings", "frames", "seconds", "ref_clean")})
     return tot
 
 
@@ -477,7 +498,12 @@ def summarize(args, results: list[dict], wall: float, variant: str) -> dict:
         "precision": args.precision, "workers": args.workers, "wall_seconds": round(wall, 2),
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
         "mean_seconds_per_scene": timing,
+        "references_not_clean": sorted(r["scene"] for r in recs if r.get("ref_clean") is False),
     }
+    sizes = [f["bytes"] for r in recs for f in r["frames"].values() if "bytes" in f]
+    if sizes:
+        summary["mean_frame_megabytes"] = round(float(np.mean(sizes)) / 1e6, 3)
+        summary["gigabytes_per_2000_frames"] = round(2000 * float(np.mean(sizes)) / 1e9, 2)
     if n_rendered:
         summary["scenes_per_hour"] = round(3600.0 * n_rendered / wall, 2)
         summary["frames_per_hour"] = round(3600.0 * n_frames / wall, 2)
