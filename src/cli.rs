@@ -80,6 +80,9 @@ pub struct RunArgs {
     /// Tile side in pixels (0: whole frame at once).
     #[arg(long, env = "MCDENOISE_TILE", default_value_t = 256)]
     pub tile: usize,
+    /// Tile side for contract-v2 (multi-scale) models, whose halo is wider (0: whole frame).
+    #[arg(long, env = "MCDENOISE_TILE_V2", default_value_t = engine::DEFAULT_TILE_V2)]
+    pub tile_v2: usize,
     /// Threads for inference and processing (default: all cores).
     #[arg(long, env = "MCDENOISE_THREADS")]
     pub threads: Option<usize>,
@@ -161,6 +164,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     }
     let mut config = EngineConfig::new(&args.models);
     config.tile = args.tile;
+    config.tile_v2 = args.tile_v2;
     if let Some(t) = args.threads {
         config.threads = t;
     }
@@ -216,7 +220,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "variant": out.variant,
         "contract": contract,
         "tiles": out.tiles,
-        "tile": args.tile,
+        "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "threads": config.threads,
         "flops_per_pixel": flops,
         "sanitized": frame.sanitized,

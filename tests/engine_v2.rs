@@ -15,7 +15,7 @@ fn tiny_v2() -> PathBuf {
 
 fn engine_at(dir: &Path, tile: usize) -> Engine {
     let mut config = EngineConfig::new(dir);
-    config.tile = tile;
+    (config.tile, config.tile_v2) = (tile, tile);
     config.threads = 2;
     Engine::load(&config).expect("models load (is the ONNX Runtime library installed? run scripts/setup)")
 }

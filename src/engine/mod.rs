@@ -49,9 +49,12 @@ pub enum EngineError {
 pub struct EngineConfig {
     /// Directory holding the variants (`full/`, `nocov/`, ...; docs/model-contract.md).
     pub models_dir: PathBuf,
-    /// Side of a tile's core in pixels (rounded up to a contract-v2 model's size multiple);
-    /// 0 runs the whole frame at once.
+    /// Side of a tile's core in pixels for contract-v1 models; 0 runs the whole frame at
+    /// once.
     pub tile: usize,
+    /// The same for contract-v2 models (rounded up to the model's size multiple): their
+    /// halo is wider, so their tiles are larger.
+    pub tile_v2: usize,
     /// Threads for ONNX Runtime and for pre/post-processing.
     pub threads: usize,
     /// Explicit path of libonnxruntime; otherwise it is searched for (see [`runtime`]).
@@ -63,11 +66,18 @@ impl EngineConfig {
         EngineConfig {
             models_dir: models_dir.into(),
             tile: 256,
+            tile_v2: DEFAULT_TILE_V2,
             threads: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             ort_library: None,
         }
     }
 }
+
+/// Default tile side for contract-v2 models. Measured with the default msnet (receptive
+/// radius 117, halo 128) on a 1280×720 frame, `mcdenoise run` on 2 cores: 768 gives two
+/// tiles, 7.1–7.3 s and 0.79–0.80 GB peak; 512 8.1 s and 0.76 GB; 1024 7.2 s and 0.99 GB;
+/// the whole frame 4.8–8.9 s and 1.07–1.27 GB (docs/model-contract.md).
+pub const DEFAULT_TILE_V2: usize = 768;
 
 /// Time spent per stage.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
@@ -107,6 +117,7 @@ pub struct Denoised {
 pub struct Engine {
     models: Vec<VariantModel>,
     tile: usize,
+    tile_v2: usize,
     pool: rayon::ThreadPool,
 }
 
@@ -121,7 +132,7 @@ impl Engine {
             .thread_name(|i| format!("mcdenoise-engine-{i}"))
             .build()
             .map_err(|e| EngineError::Runtime(format!("cannot start the engine's thread pool: {e}")))?;
-        Ok(Engine { models, tile: config.tile, pool })
+        Ok(Engine { models, tile: config.tile, tile_v2: config.tile_v2, pool })
     }
 
     /// What each loaded network declares.
@@ -185,7 +196,7 @@ impl Engine {
             Some(v) => v,
             None => self.select(frame)?,
         };
-        let (model, plan) = plan(&mut self.models, self.tile, variant, frame)?;
+        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;
         let stats = FrameStats::of(frame);
         let tiles = tile_grid(frame.width, frame.height, plan.tile);
         let (w, h) = (frame.width, frame.height);
@@ -221,7 +232,7 @@ impl Engine {
     /// `frame` (preprocessing done beforehand and not counted, logits not consumed): the
     /// inference floor the speed benchmark compares the engine with.
     pub fn inference_only(&mut self, frame: &Frame, variant: Variant) -> Result<Duration, EngineError> {
-        let (model, plan) = plan(&mut self.models, self.tile, variant, frame)?;
+        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;
         let stats = FrameStats::of(frame);
         let mut timings = StageTimings::default();
         for core in tile_grid(frame.width, frame.height, plan.tile) {
@@ -233,10 +244,10 @@ impl Engine {
 }
 
 /// The loaded model of `variant`, checked against the frame's channels, and its tiling for
-/// tiles of side `tile`.
+/// tiles of side `tiles[0]` (contract v1) or `tiles[1]` (contract v2).
 fn plan<'a>(
     models: &'a mut [VariantModel],
-    tile: usize,
+    tiles: [usize; 2],
     variant: Variant,
     frame: &Frame,
 ) -> Result<(&'a mut VariantModel, Tiling), EngineError> {
@@ -249,6 +260,10 @@ fn plan<'a>(
         return Err(EngineError::NoModel(format!("the `{variant}` model needs a `covariance` channel")));
     }
     let multiple = model.size_multiple();
+    let tile = match model.networks {
+        model::Networks::Pair { .. } => tiles[0],
+        model::Networks::MultiScale(_) => tiles[1],
+    };
     let plan = Tiling {
         tile: tile.next_multiple_of(multiple),
         halo: model.receptive_radius().next_multiple_of(multiple),

@@ -18,7 +18,7 @@ so the kernels are far from uniform) are exported for both variants. Then:
    half).
 4. Contract v2: a random multi-scale network (msnet.py, 4 levels, 5x5 kernels, heads
    scaled so kernels and blends are far from uniform) exported by export_ms.py for both
-   variants; `run --tile 16` on a 44x60 frame (not a multiple of the size multiple 8, so
+   variants; `run --tile-v2 16` on a 44x60 frame (not a multiple of the size multiple 8, so
    the engine pads; 16-px tiles with a halo of the receptive radius) agrees with the torch
    network on the whole preprocessed frame padded by edge replication (`pad_to_multiple`),
    plus recon_ms's reconstruction, cropped, and v1's inverse transforms, to 1e-5 relative
@@ -281,7 +281,7 @@ def test_run_matches_torch_v2(request, variant):
 
     out = root / f"out-{variant}.exr"
     engine(exe, "run", case["paths"][variant], "-o", out, "--models", case["models"],
-           "--layers", "diffuse,specular", "--tile", TILE2, "--variant", variant)
+           "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", variant)
     got = read_exr(out)
     types = exr_pixel_types(out)
     for prefix, ref in expect.items():
