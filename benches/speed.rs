@@ -1,5 +1,5 @@
 //! Speed benchmark (`make bench`, or `cargo bench --bench speed -- [--models DIR] [--threads N]
-//! [--tile N] [--runs N] [--out FILE] [--work DIR] [--quick] [--engine-only]`). Every figure is measured in the same run
+//! [--tile N] [--tile-v2 N] [--runs N] [--out FILE] [--work DIR] [--quick] [--engine-only]`). Every figure is measured in the same run
 //! so that the ratios between them hold even on a machine with other load:
 //!
 //! 1. the machine's ceiling: FP32 GEMM through ONNX Runtime's MatMul (benches/matmul.onnx)
@@ -35,6 +35,8 @@ struct Args {
     models: PathBuf,
     threads: usize,
     tile: usize,
+    /// Tile side for contract-v2 models.
+    tile_v2: usize,
     runs: usize,
     out: PathBuf,
     work: PathBuf,
@@ -48,6 +50,7 @@ fn parse_args() -> Result<Args> {
         models: PathBuf::from("models"),
         threads: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         tile: 256,
+        tile_v2: mcdenoise::engine::DEFAULT_TILE_V2,
         runs: 3,
         out: PathBuf::from("target/bench/speed.json"),
         work: PathBuf::from("target/bench"),
@@ -62,6 +65,7 @@ fn parse_args() -> Result<Args> {
             "--models" => a.models = value()?.into(),
             "--threads" => a.threads = value()?.parse()?,
             "--tile" => a.tile = value()?.parse()?,
+            "--tile-v2" => a.tile_v2 = value()?.parse()?,
             "--runs" => a.runs = value()?.parse()?,
             "--out" => a.out = value()?.into(),
             "--work" => a.work = value()?.into(),
@@ -99,6 +103,7 @@ fn engine(a: &Args) -> Result<Engine> {
     let mut config = EngineConfig::new(&a.models);
     config.threads = a.threads;
     config.tile = a.tile;
+    config.tile_v2 = a.tile_v2;
     let mut e = Engine::load(&config)?;
     e.warm_up()?;
     Ok(e)
@@ -182,7 +187,7 @@ fn engine_section(a: &Args, e: &mut Engine, exr: &[u8], w: usize, h: usize, gemm
         100.0 * floor_s / total
     );
     Ok(json!({
-        "width": w, "height": h, "variant": variant, "tile": a.tile, "threads": a.threads, "runs": a.runs,
+        "width": w, "height": h, "variant": variant, "tile": a.tile, "tile_v2": a.tile_v2, "threads": a.threads, "runs": a.runs,
         "flops_per_frame": flops,
         "ort_alone_s": floor_s,
         "ort_alone_gflops": flops / floor_s / 1e9,
@@ -258,6 +263,7 @@ fn daemon_section(a: &Args, e: &mut Engine) -> Result<Value> {
     let models = a.models.display().to_string();
     let threads = a.threads.to_string();
     let tile = a.tile.to_string();
+    let tile_v2 = a.tile_v2.to_string();
     let args: Vec<String> = [
         "serve",
         "--http",
@@ -270,6 +276,8 @@ fn daemon_section(a: &Args, e: &mut Engine) -> Result<Value> {
         &threads,
         "--tile",
         &tile,
+        "--tile-v2",
+        &tile_v2,
         "--models",
         &models,
         "--log",
@@ -334,6 +342,7 @@ fn memory_section(a: &Args, dir: &Path) -> Result<Value> {
             .arg(&output)
             .args(["--models", &a.models.display().to_string()])
             .args(["--threads", &a.threads.to_string(), "--tile", &a.tile.to_string()])
+            .args(["--tile-v2", &a.tile_v2.to_string()])
             .output()
             .context("cannot run /usr/bin/time")?;
         if !res.status.success() {

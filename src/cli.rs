@@ -10,7 +10,7 @@ use clap::Args;
 use ndarray::{Array0, Array3};
 use serde_json::json;
 
-use crate::engine::{self, preprocess, Engine, EngineConfig, Rect, Variant, EPS};
+use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
 use crate::frame::{self, Buffer, Frame, Limits, OutputLayer};
 use crate::metrics::Metrics;
 
@@ -28,22 +28,38 @@ impl FrameArgs {
     }
 }
 
-/// Which model variant to use.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, Default)]
-pub enum VariantArg {
-    /// `full` if the frame has covariance, else `nocov`.
-    #[default]
-    Auto,
-    Full,
-    Nocov,
-}
+/// Which model variant to use: `auto` (`full` if the frame has covariance and `full` is
+/// loaded, else `nocov`) or the name of a loaded variant (`full`, `nocov`, `lin2020`, ...).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct VariantArg(Option<Variant>);
 
 impl VariantArg {
     fn resolve(self) -> Option<Variant> {
-        match self {
-            VariantArg::Auto => None,
-            VariantArg::Full => Some(Variant::Full),
-            VariantArg::Nocov => Some(Variant::Nocov),
+        self.0
+    }
+}
+
+impl std::str::FromStr for VariantArg {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<VariantArg, String> {
+        if s == "auto" {
+            return Ok(VariantArg(None));
+        }
+        Variant::parse(s).map(|v| VariantArg(Some(v))).ok_or_else(|| {
+            format!(
+                "`{s}` is not a variant name (auto, or a directory name of up to {} letters, digits, _, -, .)",
+                Variant::MAX_LEN
+            )
+        })
+    }
+}
+
+impl std::fmt::Display for VariantArg {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            None => f.write_str("auto"),
+            Some(v) => f.write_str(v.name()),
         }
     }
 }
@@ -58,19 +74,23 @@ pub struct RunArgs {
     /// Reference frame: prints RelMSE, DSSIM, PSNR and SMAPE of input and output.
     #[arg(long)]
     pub reference: Option<PathBuf>,
-    /// Directory with the model variants (`full/`, `nocov/`).
+    /// Directory with the model variants (`full/`, `nocov/`, ...).
     #[arg(long, env = "MCDENOISE_MODELS", default_value = "models")]
     pub models: PathBuf,
     /// Tile side in pixels (0: whole frame at once).
     #[arg(long, env = "MCDENOISE_TILE", default_value_t = 256)]
     pub tile: usize,
+    /// Tile side for contract-v2 (multi-scale) models, whose halo is wider (0: whole frame).
+    #[arg(long, env = "MCDENOISE_TILE_V2", default_value_t = engine::DEFAULT_TILE_V2)]
+    pub tile_v2: usize,
     /// Threads for inference and processing (default: all cores).
     #[arg(long, env = "MCDENOISE_THREADS")]
     pub threads: Option<usize>,
     /// Extra layers to write besides R,G,B: `diffuse`, `specular` (comma-separated).
     #[arg(long, value_delimiter = ',')]
     pub layers: Vec<String>,
-    #[arg(long, value_enum, default_value_t)]
+    /// Model variant: `auto`, or the name of a loaded variant (`full`, `nocov`, `lin2020`, ...).
+    #[arg(long, default_value_t)]
     pub variant: VariantArg,
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
     #[arg(long, env = "ORT_DYLIB_PATH")]
@@ -89,7 +109,8 @@ pub struct PreprocessArgs {
     /// Reference frame: adds the training targets.
     #[arg(long)]
     pub reference: Option<PathBuf>,
-    #[arg(long, value_enum, default_value_t)]
+    /// Feature set: `auto` (`full` if the frame has covariance, else `nocov`), `full` or `nocov`.
+    #[arg(long, default_value_t)]
     pub variant: VariantArg,
     #[command(flatten)]
     pub frame: FrameArgs,
@@ -143,6 +164,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     }
     let mut config = EngineConfig::new(&args.models);
     config.tile = args.tile;
+    config.tile_v2 = args.tile_v2;
     if let Some(t) = args.threads {
         config.threads = t;
     }
@@ -188,14 +210,17 @@ pub fn run(args: RunArgs) -> Result<()> {
         })
     });
     let flops = engine.flops_per_pixel(out.variant).unwrap_or(0.0);
+    let contract = engine.models().iter().find(|m| m.variant == out.variant).map_or(0, |m| m.contract);
+    eprintln!("denoised {} with variant `{}` (contract {contract})", args.input.display(), out.variant);
     let report = json!({
         "input": args.input,
         "output": args.output,
         "width": out.width,
         "height": out.height,
         "variant": out.variant,
+        "contract": contract,
         "tiles": out.tiles,
-        "tile": args.tile,
+        "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "threads": config.threads,
         "flops_per_pixel": flops,
         "sanitized": frame.sanitized,
@@ -224,20 +249,22 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     if let Some(r) = &reference {
         check_same_size(&frame, r)?;
     }
-    let variant = match args.variant.resolve() {
+    let set = match args.variant.resolve() {
         Some(Variant::Full) if !frame.has(Buffer::Covariance) => {
             bail!("{}: --variant full needs a `covariance` channel", args.input.display())
         }
-        Some(v) => v,
-        None if frame.has(Buffer::Covariance) => Variant::Full,
-        None => Variant::Nocov,
+        Some(Variant::Full) => FeatureSet::Full,
+        Some(Variant::Nocov) => FeatureSet::Nocov,
+        Some(v) => bail!("--variant {v}: `preprocess` writes the `full` or the `nocov` inputs (auto, full or nocov)"),
+        None if frame.has(Buffer::Covariance) => FeatureSet::Full,
+        None => FeatureSet::Nocov,
     };
-    if variant == Variant::Nocov {
+    if set == FeatureSet::Nocov {
         frame.remove(Buffer::Covariance);
     }
     let (w, h) = (frame.width, frame.height);
     let stats = engine::FrameStats::of(&frame);
-    let inputs = preprocess::preprocess(&frame, &stats, variant, Rect { x: 0, y: 0, w, h });
+    let inputs = preprocess::preprocess(&frame, &stats, set, Rect { x: 0, y: 0, w, h });
 
     let shaped = |v: Vec<f32>| -> Result<Array3<f32>> {
         let c = v.len() / (w * h);
@@ -255,7 +282,7 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     npz.add_array("features", &shaped(inputs.features)?)?;
     npz.add_array("albedo", &shaped(stack([&albedo[0], &albedo[1], &albedo[2]]))?)?;
     npz.add_array("noisy", &shaped(stack([&noisy[0], &noisy[1], &noisy[2]]))?)?;
-    npz.add_array("variant", &Array0::from_elem((), i32::from(variant == Variant::Full)))?;
+    npz.add_array("variant", &Array0::from_elem((), i32::from(set == FeatureSet::Full)))?;
     if let Some(r) = &reference {
         if !(r.has(Buffer::Diffuse) && r.has(Buffer::Specular)) {
             bail!("the reference needs diffuse.* and specular.* channels for training targets");
@@ -275,7 +302,7 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     }
     npz.finish()?;
     fs::rename(&tmp, &args.output).with_context(|| format!("cannot rename to {}", args.output.display()))?;
-    eprintln!("wrote {} ({}x{}, variant {})", args.output.display(), w, h, variant.name());
+    eprintln!("wrote {} ({}x{}, variant {})", args.output.display(), w, h, set.name());
     Ok(())
 }
 

@@ -46,7 +46,7 @@ pub struct SubmitArgs {
     /// Makes retries safe: a second submission with the same key returns the same job.
     #[arg(long)]
     pub idempotency_key: Option<String>,
-    /// Model variant: auto, full or nocov.
+    /// Model variant: auto, or the name of a variant the daemon has loaded (full, nocov, ...).
     #[arg(long, default_value = "auto")]
     pub variant: String,
     /// Seconds after which the job fails (default: the daemon's).
@@ -489,11 +489,11 @@ fn options_pb(args: &SubmitArgs) -> Result<pb::JobOptions> {
         "low" => pb::Priority::Low,
         other => bail!("unknown priority `{other}` (expected high, normal or low)"),
     };
-    let variant = match args.variant.as_str() {
-        "auto" => pb::Variant::Unspecified,
-        "full" => pb::Variant::Full,
-        "nocov" => pb::Variant::Nocov,
-        other => bail!("unknown variant `{other}` (expected auto, full or nocov)"),
+    let (variant, variant_name) = match args.variant.as_str() {
+        "auto" => (pb::Variant::Unspecified, ""),
+        "full" => (pb::Variant::Full, ""),
+        "nocov" => (pb::Variant::Nocov, ""),
+        other => (pb::Variant::Unspecified, other),
     };
     Ok(pb::JobOptions {
         priority: priority as i32,
@@ -502,6 +502,7 @@ fn options_pb(args: &SubmitArgs) -> Result<pb::JobOptions> {
         label: args.label.clone().unwrap_or_default(),
         variant: variant as i32,
         deadline_seconds: args.deadline_seconds.unwrap_or(0),
+        variant_name: variant_name.to_string(),
     })
 }
 

@@ -69,7 +69,7 @@ pub struct ServeArgs {
     pub janitor_interval: Duration,
 
     // --- Models and workers ----------------------------------------------------------
-    /// Directory with the model variants (`full/`, `nocov/`; docs/model-contract.md).
+    /// Directory with the model variants (`full/`, `nocov/`, ...; docs/model-contract.md).
     #[arg(long, env = "MCDENOISE_MODELS", default_value = "models", help_heading = "Models and workers")]
     pub models: PathBuf,
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
@@ -86,6 +86,9 @@ pub struct ServeArgs {
     /// make cancellation and progress finer; each tile adds a halo of context.
     #[arg(long, env = "MCDENOISE_TILE", default_value_t = 256, help_heading = "Models and workers")]
     pub tile: usize,
+    /// Tile side for contract-v2 (multi-scale) models, whose halo is wider (0: whole frame).
+    #[arg(long, env = "MCDENOISE_TILE_V2", default_value_t = crate::engine::DEFAULT_TILE_V2, help_heading = "Models and workers")]
+    pub tile_v2: usize,
 
     // --- Queue and limits --------------------------------------------------------------
     /// Largest number of queued jobs (running ones excluded); beyond it submissions get
@@ -202,6 +205,7 @@ impl ServeArgs {
             "workers": self.workers(),
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,
+            "tile_v2": self.tile_v2,
             "queue_capacity": self.queue_capacity,
             "job_deadline": humantime::format_duration(self.job_deadline).to_string(),
             "result_ttl": humantime::format_duration(self.result_ttl).to_string(),

@@ -649,6 +649,7 @@ struct GrpcOptions {
     label: String,
     variant: i32,
     deadline_seconds: u64,
+    variant_name: String,
 }
 
 /// A declared size: bytes, or the size of a corpus file less `minus`.
@@ -853,6 +854,7 @@ fn grpc_message(m: &GrpcMessage) -> pb::SubmitJobRequest {
                 label: o.label.clone(),
                 variant: o.variant,
                 deadline_seconds: o.deadline_seconds,
+                variant_name: o.variant_name.clone(),
             }),
             frame_size: frame_size.bytes(),
             reference_size: reference_size.bytes(),

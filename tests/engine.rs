@@ -6,7 +6,9 @@ mod common;
 use common::*;
 use mcdenoise::engine::contract::COLOR_CHANNELS;
 use mcdenoise::engine::preprocess::{luminance, preprocess};
-use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig, EngineError, FrameStats, Rect, Variant, EPS};
+use mcdenoise::engine::{
+    synthetic_frame, Engine, EngineConfig, EngineError, FeatureSet, FrameStats, Rect, Variant, EPS,
+};
 use mcdenoise::frame::{layout::REQUIRED, Buffer, Frame};
 
 /// A 3×2 frame with hand-picked values.
@@ -48,7 +50,7 @@ fn preprocessing_matches_closed_form() {
     let frame = hand_frame();
     let stats = FrameStats::of(&frame);
     assert_eq!(stats, FrameStats { depth_max: 8.0, covariance_max: 0.4 });
-    let t = preprocess(&frame, &stats, Variant::Full, Rect { x: 0, y: 0, w: 3, h: 2 });
+    let t = preprocess(&frame, &stats, FeatureSet::Full, Rect { x: 0, y: 0, w: 3, h: 2 });
     let n = 6;
     let ch = |v: &[f32], c: usize| v[c * n..(c + 1) * n].to_vec();
 
@@ -86,7 +88,7 @@ fn preprocessing_matches_closed_form() {
     assert!(close(f(27)[1], 0.0)); // gy covariance: 0.1 − 0.1
 
     // The nocov variant is the full one without the covariance channels.
-    let nocov = preprocess(&frame, &stats, Variant::Nocov, Rect { x: 0, y: 0, w: 3, h: 2 });
+    let nocov = preprocess(&frame, &stats, FeatureSet::Nocov, Rect { x: 0, y: 0, w: 3, h: 2 });
     let keep: Vec<usize> = (0..28).filter(|k| ![7, 11, 19, 27].contains(k)).collect();
     for (j, &k) in keep.iter().enumerate() {
         assert_eq!(ch(&nocov.features, j), f(k), "feature {k}");
@@ -97,9 +99,9 @@ fn preprocessing_matches_closed_form() {
 fn a_region_preprocesses_like_the_same_pixels_of_the_whole_frame() {
     let frame = synthetic_frame(21, 17, true);
     let stats = FrameStats::of(&frame);
-    let whole = preprocess(&frame, &stats, Variant::Full, Rect { x: 0, y: 0, w: 21, h: 17 });
+    let whole = preprocess(&frame, &stats, FeatureSet::Full, Rect { x: 0, y: 0, w: 21, h: 17 });
     let rect = Rect { x: 5, y: 4, w: 16, h: 9 };
-    let part = preprocess(&frame, &stats, Variant::Full, rect);
+    let part = preprocess(&frame, &stats, FeatureSet::Full, rect);
     for (a, b, c) in [(&part.diffuse, &whole.diffuse, COLOR_CHANNELS), (&part.features, &whole.features, 28)] {
         for k in 0..c {
             for y in 0..rect.h {

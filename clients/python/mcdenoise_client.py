@@ -280,7 +280,7 @@ def main(argv=None) -> int:
     d.add_argument("--priority", choices=["high", "normal", "low"])
     d.add_argument("--label")
     d.add_argument("--layers", help="comma-separated: diffuse,specular")
-    d.add_argument("--variant", choices=["auto", "full", "nocov"])
+    d.add_argument("--variant", help="auto, or the name of a loaded variant (full, nocov, ...)")
     g = sub.add_parser("job", help="print a job as JSON")
     g.add_argument("id")
     args = p.parse_args(argv)

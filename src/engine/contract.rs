@@ -1,10 +1,14 @@
-//! Model contract v1: what a model file must declare for the engine to use it.
+//! Model contracts v1 and v2: what a model file must declare for the engine to use it.
 //! The full text is `docs/model-contract.md`; `training/mcdenoise_train/contract.py` mirrors
 //! these constants on the training side.
 
-/// Version of the contract this engine implements.
+use std::fmt;
+
+/// Contract v1: one graph per component, one 21×21 kernel (`diffuse.onnx`, `specular.onnx`).
 pub const CONTRACT_VERSION: &str = "1";
-/// Side of the predicted kernel.
+/// Contract v2: one graph for both components, kernels at several scales (`model.onnx`).
+pub const CONTRACT_V2: &str = "2";
+/// Side of the predicted kernel (contract v1).
 pub const KERNEL_SIZE: usize = 21;
 /// Taps per kernel.
 pub const TAPS: usize = KERNEL_SIZE * KERNEL_SIZE;
@@ -83,34 +87,108 @@ pub mod keys {
     pub const RECEPTIVE_RADIUS: &str = "mcdenoise.receptive_radius";
     pub const FLOPS_PER_PIXEL: &str = "mcdenoise.flops_per_pixel";
     pub const ARCHITECTURE: &str = "mcdenoise.architecture";
+    /// Contract v2: pyramid levels.
+    pub const LEVELS: &str = "mcdenoise.levels";
+    /// Contract v2: what region sides must be a multiple of (2^(levels − 1)).
+    pub const SIZE_MULTIPLE: &str = "mcdenoise.size_multiple";
 }
 
-/// Which inputs a model takes: with or without light transport covariance.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+/// A model variant: the name of its directory under the models directory (`full`, `nocov`,
+/// `lin2020`, ...), which its `mcdenoise.variant` metadata repeats.
+///
+/// At most [`Variant::MAX_LEN`] bytes of ASCII letters, digits, `_`, `-` and `.`, starting
+/// with a letter or digit; held inline so that the type stays `Copy`. Which inputs a variant
+/// takes is not part of its name: it is the loaded model's [`FeatureSet`].
+#[derive(Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Variant {
+    len: u8,
+    bytes: [u8; Variant::MAX_LEN],
+}
+
+impl Variant {
+    /// Longest variant name, in bytes.
+    pub const MAX_LEN: usize = 31;
+    /// The variant the engine picks for frames with covariance.
+    #[allow(non_upper_case_globals)]
+    pub const Full: Variant = Variant::from_static("full");
+    /// The variant the engine picks for frames without covariance.
+    #[allow(non_upper_case_globals)]
+    pub const Nocov: Variant = Variant::from_static("nocov");
+
+    const fn from_static(name: &str) -> Variant {
+        let src = name.as_bytes();
+        let mut bytes = [0u8; Variant::MAX_LEN];
+        let mut i = 0;
+        while i < src.len() {
+            bytes[i] = src[i];
+            i += 1;
+        }
+        Variant { len: src.len() as u8, bytes }
+    }
+
+    pub fn name(&self) -> &str {
+        // Only `parse` and `from_static` build a Variant, both from ASCII.
+        std::str::from_utf8(&self.bytes[..self.len as usize]).expect("variant names are ASCII")
+    }
+
+    /// The variant called `name`, if `name` is a valid variant name (whether such a variant
+    /// is loaded is the engine's question).
+    pub fn parse(name: &str) -> Option<Variant> {
+        let ok = |b: u8| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'-' | b'.');
+        let b = name.as_bytes();
+        (!b.is_empty() && b.len() <= Variant::MAX_LEN && b[0].is_ascii_alphanumeric() && b.iter().all(|&c| ok(c)))
+            .then(|| Variant::from_static(name))
+    }
+}
+
+impl fmt::Display for Variant {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl fmt::Debug for Variant {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "Variant({})", self.name())
+    }
+}
+
+impl serde::Serialize for Variant {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Variant {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Variant, D::Error> {
+        let name = <std::borrow::Cow<'de, str>>::deserialize(d)?;
+        Variant::parse(&name).ok_or_else(|| serde::de::Error::custom(format!("invalid variant name `{name}`")))
+    }
+}
+
+/// The feature inputs a model takes (`mcdenoise.features`): with or without light transport
+/// covariance.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
-pub enum Variant {
+pub enum FeatureSet {
     Full,
     Nocov,
 }
 
-impl Variant {
-    pub const ALL: [Variant; 2] = [Variant::Full, Variant::Nocov];
+impl FeatureSet {
+    pub const ALL: [FeatureSet; 2] = [FeatureSet::Full, FeatureSet::Nocov];
 
     pub fn name(self) -> &'static str {
         match self {
-            Variant::Full => "full",
-            Variant::Nocov => "nocov",
+            FeatureSet::Full => "full",
+            FeatureSet::Nocov => "nocov",
         }
-    }
-
-    pub fn parse(s: &str) -> Option<Variant> {
-        Variant::ALL.into_iter().find(|v| v.name() == s)
     }
 
     pub fn features(self) -> &'static [&'static str] {
         match self {
-            Variant::Full => &FEATURES_FULL,
-            Variant::Nocov => &FEATURES_NOCOV,
+            FeatureSet::Full => &FEATURES_FULL,
+            FeatureSet::Nocov => &FEATURES_NOCOV,
         }
     }
 
@@ -118,9 +196,14 @@ impl Variant {
         self.features().len()
     }
 
-    /// Whether the variant reads the covariance buffer.
+    /// Whether the features include the covariance buffer.
     pub fn uses_covariance(self) -> bool {
-        self == Variant::Full
+        self == FeatureSet::Full
+    }
+
+    /// The set whose comma-separated names are `list`.
+    pub fn from_list(list: &str) -> Option<FeatureSet> {
+        FeatureSet::ALL.into_iter().find(|f| f.features().join(",") == list)
     }
 }
 
@@ -151,5 +234,28 @@ mod tests {
     fn nocov_is_full_without_covariance() {
         let filtered: Vec<&str> = FEATURES_FULL.iter().copied().filter(|f| !f.contains("covariance")).collect();
         assert_eq!(filtered, FEATURES_NOCOV);
+    }
+
+    #[test]
+    fn variant_names_round_trip_and_bad_ones_are_refused() {
+        assert_eq!(Variant::parse("full"), Some(Variant::Full));
+        assert_eq!(Variant::Nocov.name(), "nocov");
+        let v = Variant::parse("lin2020").unwrap();
+        assert_eq!((v.name(), v.to_string()), ("lin2020", "lin2020".to_string()));
+        assert_eq!(serde_json::to_string(&v).unwrap(), "\"lin2020\"");
+        assert_eq!(serde_json::from_str::<Variant>("\"full\"").unwrap(), Variant::Full);
+        assert!(serde_json::from_str::<Variant>("\"../x\"").is_err());
+        let longest = "a".repeat(Variant::MAX_LEN);
+        assert_eq!(Variant::parse(&longest).unwrap().name(), longest);
+        for bad in ["", ".hidden", "a/b", "a b", "é", &"a".repeat(Variant::MAX_LEN + 1)] {
+            assert_eq!(Variant::parse(bad), None, "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn feature_sets_are_found_from_their_list() {
+        assert_eq!(FeatureSet::from_list(&FEATURES_FULL.join(",")), Some(FeatureSet::Full));
+        assert_eq!(FeatureSet::from_list(&FEATURES_NOCOV.join(",")), Some(FeatureSet::Nocov));
+        assert_eq!(FeatureSet::from_list("normal.R"), None);
     }
 }

@@ -1,13 +1,17 @@
 //! The denoising engine: preprocessing, tiled ONNX inference, kernel reconstruction and the
 //! inverse transforms. Synchronous and transport-free; the CLI and the daemon drive it.
 //!
-//! A frame is cut into square tiles. Each tile is preprocessed and run through both networks
+//! A frame is cut into square tiles. Each tile is preprocessed and run through the networks
 //! together with a halo of context at least as wide as the networks' receptive radius (and
-//! the kernel radius), so the tiled result equals the whole-frame result while memory
-//! follows the tile size.
+//! what the reconstruction reads), so the tiled result equals the whole-frame result while
+//! memory follows the tile size. A variant is either two contract-v1 graphs (one per
+//! component, one 21×21 kernel: [`reconstruct`]) or one contract-v2 graph (both components,
+//! kernels at several scales: [`multiscale`]); for the latter, tiles and halos are aligned to
+//! its pooling grid and regions padded to it, so that tiles see the frame's grid.
 
 pub mod contract;
 pub mod model;
+pub mod multiscale;
 pub mod preprocess;
 pub mod reconstruct;
 pub mod runtime;
@@ -17,8 +21,8 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-pub use contract::{Component, Variant};
-pub use model::{ModelInfo, ModelPair};
+pub use contract::{Component, FeatureSet, Variant};
+pub use model::{ModelInfo, VariantModel};
 pub use preprocess::{FrameStats, Rect, EPS};
 
 use crate::frame::{Buffer, Frame, Plane};
@@ -43,10 +47,14 @@ pub enum EngineError {
 /// How the engine is set up.
 #[derive(Clone, Debug)]
 pub struct EngineConfig {
-    /// Directory holding `full/` and/or `nocov/`.
+    /// Directory holding the variants (`full/`, `nocov/`, ...; docs/model-contract.md).
     pub models_dir: PathBuf,
-    /// Side of a tile's core in pixels; 0 runs the whole frame at once.
+    /// Side of a tile's core in pixels for contract-v1 models; 0 runs the whole frame at
+    /// once.
     pub tile: usize,
+    /// The same for contract-v2 models (rounded up to the model's size multiple): their
+    /// halo is wider, so their tiles are larger.
+    pub tile_v2: usize,
     /// Threads for ONNX Runtime and for pre/post-processing.
     pub threads: usize,
     /// Explicit path of libonnxruntime; otherwise it is searched for (see [`runtime`]).
@@ -58,11 +66,18 @@ impl EngineConfig {
         EngineConfig {
             models_dir: models_dir.into(),
             tile: 256,
+            tile_v2: DEFAULT_TILE_V2,
             threads: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             ort_library: None,
         }
     }
 }
+
+/// Default tile side for contract-v2 models. Measured with the default msnet (receptive
+/// radius 117, halo 128) on a 1280×720 frame, `mcdenoise run` on 2 cores: 768 gives two
+/// tiles, 7.1–7.3 s and 0.79–0.80 GB peak; 512 8.1 s and 0.76 GB; 1024 7.2 s and 0.99 GB;
+/// the whole frame 4.8–8.9 s and 1.07–1.27 GB (docs/model-contract.md).
+pub const DEFAULT_TILE_V2: usize = 768;
 
 /// Time spent per stage.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
@@ -100,8 +115,9 @@ pub struct Denoised {
 
 /// Loaded models plus the tiling and threading settings.
 pub struct Engine {
-    pairs: Vec<ModelPair>,
+    models: Vec<VariantModel>,
     tile: usize,
+    tile_v2: usize,
     pool: rayon::ThreadPool,
 }
 
@@ -110,33 +126,33 @@ impl Engine {
     pub fn load(config: &EngineConfig) -> Result<Engine, EngineError> {
         let env = runtime::environment(config.ort_library.as_deref()).map_err(EngineError::Runtime)?;
         let threads = config.threads.max(1);
-        let pairs = model::load_models(env, &config.models_dir, threads)?;
+        let models = model::load_models(env, &config.models_dir, threads)?;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("mcdenoise-engine-{i}"))
             .build()
             .map_err(|e| EngineError::Runtime(format!("cannot start the engine's thread pool: {e}")))?;
-        Ok(Engine { pairs, tile: config.tile, pool })
+        Ok(Engine { models, tile: config.tile, tile_v2: config.tile_v2, pool })
     }
 
     /// What each loaded network declares.
     pub fn models(&self) -> Vec<&ModelInfo> {
-        self.pairs.iter().flat_map(|p| [&p.diffuse.info, &p.specular.info]).collect()
+        self.models.iter().flat_map(VariantModel::infos).collect()
     }
 
     pub fn variants(&self) -> Vec<Variant> {
-        self.pairs.iter().map(|p| p.variant).collect()
+        self.models.iter().map(|m| m.variant).collect()
     }
 
-    /// FLOPs per pixel of a variant's two networks.
+    /// FLOPs per pixel of a variant's networks (both components).
     pub fn flops_per_pixel(&self, variant: Variant) -> Option<f64> {
-        self.pairs.iter().find(|p| p.variant == variant).map(ModelPair::flops_per_pixel)
+        self.models.iter().find(|m| m.variant == variant).map(VariantModel::flops_per_pixel)
     }
 
     /// The variant for a frame: `full` when it has covariance and `full` is loaded, else
     /// `nocov`.
     pub fn select(&self, frame: &Frame) -> Result<Variant, EngineError> {
-        let has = |v: Variant| self.pairs.iter().any(|p| p.variant == v);
+        let has = |v: Variant| self.models.iter().any(|m| m.variant == v);
         if frame.has(Buffer::Covariance) && has(Variant::Full) {
             Ok(Variant::Full)
         } else if has(Variant::Nocov) {
@@ -145,15 +161,24 @@ impl Engine {
             }
             Ok(Variant::Nocov)
         } else {
-            Err(EngineError::NoModel("the frame has no `covariance` channel and no `nocov` model is loaded".into()))
+            let lacks = if frame.has(Buffer::Covariance) {
+                "no `full` or `nocov` model is loaded"
+            } else {
+                "the frame has no `covariance` channel and no `nocov` model is loaded"
+            };
+            Err(EngineError::NoModel(format!("{lacks} (loaded: {}); name a variant", self.loaded_names())))
         }
+    }
+
+    fn loaded_names(&self) -> String {
+        self.models.iter().map(|m| m.variant.name()).collect::<Vec<_>>().join(", ")
     }
 
     /// Runs each loaded variant once on a small frame, so that the first real job does not
     /// pay ONNX Runtime's first-run cost.
     pub fn warm_up(&mut self) -> Result<(), EngineError> {
-        for variant in self.variants() {
-            let frame = synthetic_frame(32, 32, variant == Variant::Full);
+        for (variant, features) in self.models.iter().map(|m| (m.variant, m.features)).collect::<Vec<_>>() {
+            let frame = synthetic_frame(32, 32, features.uses_covariance());
             self.denoise(&frame, Some(variant), &mut |_| true)?;
         }
         Ok(())
@@ -171,37 +196,18 @@ impl Engine {
             Some(v) => v,
             None => self.select(frame)?,
         };
-        let (pair, halo) = pair_for(&mut self.pairs, variant, frame)?;
+        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;
         let stats = FrameStats::of(frame);
-        let tiles = tile_grid(frame.width, frame.height, self.tile);
+        let tiles = tile_grid(frame.width, frame.height, plan.tile);
         let (w, h) = (frame.width, frame.height);
         let mut filtered = [vec![0f32; 3 * w * h], vec![0f32; 3 * w * h]];
         let mut timings = StageTimings::default();
 
         for (index, core) in tiles.iter().enumerate() {
-            let region = expand(*core, halo, w, h);
-            let t = Instant::now();
-            let inputs = self.pool.install(|| preprocess::preprocess(frame, &stats, variant, region));
-            timings.preprocess += t.elapsed();
-            for (slot, component) in Component::ALL.into_iter().enumerate() {
-                let color = match component {
-                    Component::Diffuse => &inputs.diffuse,
-                    Component::Specular => &inputs.specular,
-                };
-                let t = Instant::now();
-                let mut core_out = vec![0f32; 3 * core.pixels()];
-                let pool = &self.pool;
-                let mut recon_time = Duration::ZERO;
-                pair.network(component).run(color, &inputs.features, region.h, region.w, |logits| {
-                    let t = Instant::now();
-                    pool.install(|| {
-                        reconstruct::apply_kernels(logits, &color[..3 * region.pixels()], region, *core, &mut core_out)
-                    });
-                    recon_time = t.elapsed();
-                })?;
-                timings.inference += t.elapsed() - recon_time;
-                timings.reconstruction += recon_time;
-                scatter(&core_out, *core, w, h, &mut filtered[slot]);
+            let region = expand(*core, plan.halo, w, h);
+            let out = run_region(model, &self.pool, frame, &stats, region, *core, plan.multiple, &mut timings, true)?;
+            for (slot, core_out) in out.iter().enumerate() {
+                scatter(core_out, *core, w, h, &mut filtered[slot]);
             }
             if !on_tile(Progress { tiles_done: index + 1, tiles_total: tiles.len() }) && index + 1 < tiles.len() {
                 return Err(EngineError::Cancelled);
@@ -226,42 +232,145 @@ impl Engine {
     /// `frame` (preprocessing done beforehand and not counted, logits not consumed): the
     /// inference floor the speed benchmark compares the engine with.
     pub fn inference_only(&mut self, frame: &Frame, variant: Variant) -> Result<Duration, EngineError> {
-        let (pair, halo) = pair_for(&mut self.pairs, variant, frame)?;
+        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;
         let stats = FrameStats::of(frame);
-        let mut total = Duration::ZERO;
-        for core in tile_grid(frame.width, frame.height, self.tile) {
-            let region = expand(core, halo, frame.width, frame.height);
-            let inputs = self.pool.install(|| preprocess::preprocess(frame, &stats, variant, region));
-            for component in Component::ALL {
-                let color = match component {
-                    Component::Diffuse => &inputs.diffuse,
-                    Component::Specular => &inputs.specular,
-                };
-                let t = Instant::now();
-                pair.network(component).run(color, &inputs.features, region.h, region.w, |_| ())?;
-                total += t.elapsed();
-            }
+        let mut timings = StageTimings::default();
+        for core in tile_grid(frame.width, frame.height, plan.tile) {
+            let region = expand(core, plan.halo, frame.width, frame.height);
+            run_region(model, &self.pool, frame, &stats, region, core, plan.multiple, &mut timings, false)?;
         }
-        Ok(total)
+        Ok(timings.inference)
     }
 }
 
-/// The loaded pair of `variant`, checked against the frame's channels, and the halo its
-/// tiles need: the networks' receptive radius, at least the kernel radius.
-fn pair_for<'a>(
-    pairs: &'a mut [ModelPair],
+/// The loaded model of `variant`, checked against the frame's channels, and its tiling for
+/// tiles of side `tiles[0]` (contract v1) or `tiles[1]` (contract v2).
+fn plan<'a>(
+    models: &'a mut [VariantModel],
+    tiles: [usize; 2],
     variant: Variant,
     frame: &Frame,
-) -> Result<(&'a mut ModelPair, usize), EngineError> {
-    if variant.uses_covariance() && !frame.has(Buffer::Covariance) {
-        return Err(EngineError::NoModel("the `full` model needs a `covariance` channel".into()));
-    }
-    let pair = pairs
+) -> Result<(&'a mut VariantModel, Tiling), EngineError> {
+    let loaded = models.iter().map(|m| m.variant.name()).collect::<Vec<_>>().join(", ");
+    let model = models
         .iter_mut()
-        .find(|p| p.variant == variant)
-        .ok_or_else(|| EngineError::NoModel(format!("no `{}` model is loaded", variant.name())))?;
-    let halo = pair.receptive_radius().max(contract::KERNEL_RADIUS);
-    Ok((pair, halo))
+        .find(|m| m.variant == variant)
+        .ok_or_else(|| EngineError::NoModel(format!("no `{variant}` model is loaded (loaded: {loaded})")))?;
+    if model.features.uses_covariance() && !frame.has(Buffer::Covariance) {
+        return Err(EngineError::NoModel(format!("the `{variant}` model needs a `covariance` channel")));
+    }
+    let multiple = model.size_multiple();
+    let tile = match model.networks {
+        model::Networks::Pair { .. } => tiles[0],
+        model::Networks::MultiScale(_) => tiles[1],
+    };
+    let plan = Tiling {
+        tile: tile.next_multiple_of(multiple),
+        halo: model.receptive_radius().next_multiple_of(multiple),
+        multiple,
+    };
+    Ok((model, plan))
+}
+
+/// How a frame is cut for one model: the core side, the context around each core, and what
+/// both (and each region's sides) must be multiples of.
+struct Tiling {
+    tile: usize,
+    halo: usize,
+    multiple: usize,
+}
+
+/// Preprocesses `region` and runs `model` on it; returns the filtered diffuse and specular
+/// color of `core` (each `[3][core.h][core.w]`), or nothing when `reconstruct` is false (the
+/// logits are then not consumed). `region`'s origin must be a multiple of `multiple`; its
+/// sides are padded to one by replicating the last row and column.
+#[allow(clippy::too_many_arguments)]
+fn run_region(
+    model: &mut VariantModel,
+    pool: &rayon::ThreadPool,
+    frame: &Frame,
+    stats: &FrameStats,
+    region: Rect,
+    core: Rect,
+    multiple: usize,
+    timings: &mut StageTimings,
+    reconstruct: bool,
+) -> Result<[Vec<f32>; 2], EngineError> {
+    let t = Instant::now();
+    let inputs = pool.install(|| preprocess::preprocess(frame, stats, model.features, region));
+    timings.preprocess += t.elapsed();
+    let mut out = [vec![0f32; 3 * core.pixels()], vec![0f32; 3 * core.pixels()]];
+    if !reconstruct {
+        out = [Vec::new(), Vec::new()];
+    }
+    match &mut model.networks {
+        model::Networks::Pair { diffuse, specular } => {
+            for (slot, (net, color)) in
+                [(diffuse, &inputs.diffuse), (specular, &inputs.specular)].into_iter().enumerate()
+            {
+                let t = Instant::now();
+                let mut recon_time = Duration::ZERO;
+                let core_out = &mut out[slot];
+                net.run(color, &inputs.features, region.h, region.w, |logits| {
+                    if reconstruct {
+                        let t = Instant::now();
+                        pool.install(|| {
+                            reconstruct::apply_kernels(logits, &color[..3 * region.pixels()], region, core, core_out)
+                        });
+                        recon_time = t.elapsed();
+                    }
+                })?;
+                timings.inference += t.elapsed() - recon_time;
+                timings.reconstruction += recon_time;
+            }
+        }
+        model::Networks::MultiScale(net) => {
+            let t = Instant::now();
+            let (pw, ph) = (region.w.next_multiple_of(multiple), region.h.next_multiple_of(multiple));
+            let diffuse = pad_planes(&inputs.diffuse, region.w, region.h, pw, ph);
+            let specular = pad_planes(&inputs.specular, region.w, region.h, pw, ph);
+            let features = pad_planes(&inputs.features, region.w, region.h, pw, ph);
+            timings.preprocess += t.elapsed();
+            let t = Instant::now();
+            let mut recon_time = Duration::ZERO;
+            let local = Rect { x: core.x - region.x, y: core.y - region.y, w: core.w, h: core.h };
+            net.run(&diffuse, &specular, &features, ph, pw, |pyramids| {
+                if reconstruct {
+                    let t = Instant::now();
+                    pool.install(|| {
+                        let [od, os] = &mut out;
+                        rayon::join(
+                            || multiscale::reconstruct(&pyramids[0], &diffuse[..3 * pw * ph], pw, ph, local, od),
+                            || multiscale::reconstruct(&pyramids[1], &specular[..3 * pw * ph], pw, ph, local, os),
+                        )
+                    });
+                    recon_time = t.elapsed();
+                }
+            })?;
+            timings.inference += t.elapsed() - recon_time;
+            timings.reconstruction += recon_time;
+        }
+    }
+    Ok(out)
+}
+
+/// Planar `[c][h][w]` planes padded to `[c][ph][pw]` by replicating the last column and row
+/// (borrowed as they are when no padding is needed).
+fn pad_planes(src: &[f32], w: usize, h: usize, pw: usize, ph: usize) -> std::borrow::Cow<'_, [f32]> {
+    if (pw, ph) == (w, h) {
+        return std::borrow::Cow::Borrowed(src);
+    }
+    let channels = src.len() / (w * h);
+    let mut dst = vec![0f32; channels * pw * ph];
+    for c in 0..channels {
+        for y in 0..ph {
+            let row = &src[c * w * h + y.min(h - 1) * w..][..w];
+            let out = &mut dst[c * pw * ph + y * pw..][..pw];
+            out[..w].copy_from_slice(row);
+            out[w..].fill(row[w - 1]);
+        }
+    }
+    std::borrow::Cow::Owned(dst)
 }
 
 /// Cores of side `tile` covering a `w`×`h` frame, row-major; one core for `tile == 0`.

@@ -1,23 +1,42 @@
-//! Loading contract-v1 models into ONNX Runtime sessions and running them.
+//! Loading models (contract v1 or v2, docs/model-contract.md) into ONNX Runtime sessions and
+//! running them.
 
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use ort::session::{builder::GraphOptimizationLevel, Session};
 use ort::value::{TensorRef, ValueType};
 use serde::Serialize;
 
-use super::contract::{self, keys, Component, Variant, COLOR_CHANNELS, TAPS};
+use super::contract::{self, keys, Component, FeatureSet, Variant, COLOR_CHANNELS, TAPS};
+use super::multiscale::Pyramid;
 use super::EngineError;
 
 /// What a model file declares about itself.
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelInfo {
     pub variant: Variant,
-    pub component: Component,
+    /// The component the graph predicts; `None` for a contract-v2 graph, which predicts both.
+    pub component: Option<Component>,
+    /// Contract version (1 or 2).
+    pub contract: u32,
+    /// The feature inputs (`mcdenoise.features`).
+    pub features: FeatureSet,
     pub path: PathBuf,
     pub receptive_radius: usize,
     pub flops_per_pixel: f64,
     pub architecture: String,
+    /// Side of the predicted kernels.
+    pub kernel_size: usize,
+    /// Pyramid levels (1 for contract v1).
+    pub levels: usize,
+}
+
+impl ModelInfo {
+    /// `diffuse`, `specular`, or `both` for a contract-v2 graph.
+    pub fn component_name(&self) -> &'static str {
+        self.component.map_or("both", Component::name)
+    }
 }
 
 /// One network (a component of a variant) in its own session.
@@ -42,6 +61,94 @@ pub fn build_session(env: &ort::environment::Environment, path: &Path, threads: 
         .commit_from_file(path)
 }
 
+/// A model file opened in a session, with its metadata read.
+struct Opened {
+    session: Session,
+    path: PathBuf,
+    meta: std::collections::HashMap<String, String>,
+}
+
+impl Opened {
+    fn open(env: &ort::environment::Environment, path: &Path, threads: usize) -> Result<Opened, EngineError> {
+        if !path.is_file() {
+            return Err(model_error(path, "file not found"));
+        }
+        let session =
+            build_session(env, path, threads.max(1)).map_err(|e| model_error(path, format!("cannot load: {e}")))?;
+        let meta = {
+            let fail = |e: ort::Error| model_error(path, format!("cannot read metadata: {e}"));
+            let meta = session.metadata().map_err(fail)?;
+            let keys = meta.custom_keys().map_err(fail)?;
+            keys.into_iter().filter_map(|k| meta.custom(&k).map(|v| (k, v))).collect()
+        };
+        Ok(Opened { session, path: path.to_path_buf(), meta })
+    }
+
+    fn get(&self, key: &str) -> Result<&str, EngineError> {
+        self.meta
+            .get(key)
+            .map(String::as_str)
+            .ok_or_else(|| model_error(&self.path, format!("metadata `{key}` is missing")))
+    }
+
+    fn expect(&self, key: &str, want: &str, hint: &str) -> Result<(), EngineError> {
+        let got = self.get(key)?;
+        if got == want {
+            Ok(())
+        } else {
+            Err(model_error(&self.path, format!("metadata `{key}` is `{got}`, expected `{want}`{hint}")))
+        }
+    }
+
+    fn number<T: std::str::FromStr>(&self, key: &str) -> Result<T, EngineError>
+    where
+        T::Err: std::fmt::Display,
+    {
+        self.get(key)?
+            .parse::<T>()
+            .map_err(|e| model_error(&self.path, format!("metadata `{key}` is not a number: {e}")))
+    }
+
+    /// The contract version, then the fields common to both contracts.
+    fn common(&self, contract: &str, hint: &str, variant: Variant) -> Result<Common, EngineError> {
+        match self.meta.get(keys::CONTRACT) {
+            None => {
+                return Err(model_error(
+                    &self.path,
+                    format!("metadata `{}` is missing (not an mcdenoise model?)", keys::CONTRACT),
+                ))
+            }
+            Some(_) => self.expect(keys::CONTRACT, contract, hint)?,
+        }
+        self.expect(keys::VARIANT, variant.name(), " (the name of its directory)")?;
+        let list = self.get(keys::FEATURES)?;
+        let features = FeatureSet::from_list(list).ok_or_else(|| {
+            model_error(
+                &self.path,
+                format!(
+                    "metadata `{}` is `{list}`, which is neither the `full` nor the `nocov` list of \
+                     docs/model-contract.md",
+                    keys::FEATURES
+                ),
+            )
+        })?;
+        let flops_per_pixel: f64 = self.number(keys::FLOPS_PER_PIXEL)?;
+        if !(flops_per_pixel.is_finite() && flops_per_pixel >= 0.0) {
+            return Err(model_error(&self.path, format!("metadata `{}` is {flops_per_pixel}", keys::FLOPS_PER_PIXEL)));
+        }
+        Ok(Common { features, receptive_radius: self.number(keys::RECEPTIVE_RADIUS)?, flops_per_pixel })
+    }
+}
+
+struct Common {
+    features: FeatureSet,
+    receptive_radius: usize,
+    flops_per_pixel: f64,
+}
+
+const V1_HINT: &str = " (a contract-2 model is one file, model.onnx)";
+const V2_HINT: &str = " (a contract-1 model is two files, diffuse.onnx and specular.onnx)";
+
 impl Network {
     /// Loads `path` and checks it against contract v1 for `variant` and `component`.
     pub fn load(
@@ -51,45 +158,29 @@ impl Network {
         component: Component,
         threads: usize,
     ) -> Result<Network, EngineError> {
-        if !path.is_file() {
-            return Err(model_error(path, "file not found"));
-        }
-        let session =
-            build_session(env, path, threads.max(1)).map_err(|e| model_error(path, format!("cannot load: {e}")))?;
-        let meta = session.metadata().map_err(|e| model_error(path, format!("cannot read metadata: {e}")))?;
-        let get = |key: &str| -> Result<String, EngineError> {
-            meta.custom(key)
-                .ok_or_else(|| model_error(path, format!("metadata `{key}` is missing (not a contract-v1 model?)")))
-        };
-        let expect = |key: &str, want: &str| -> Result<(), EngineError> {
-            let got = get(key)?;
-            if got == want {
-                Ok(())
-            } else {
-                Err(model_error(path, format!("metadata `{key}` is `{got}`, expected `{want}`")))
-            }
-        };
-        expect(keys::CONTRACT, contract::CONTRACT_VERSION)?;
-        expect(keys::COMPONENT, component.name())?;
-        expect(keys::VARIANT, variant.name())?;
-        expect(keys::KERNEL_SIZE, &contract::KERNEL_SIZE.to_string())?;
-        expect(keys::FEATURES, &variant.features().join(","))?;
-        let receptive_radius = get(keys::RECEPTIVE_RADIUS)?
-            .parse::<usize>()
-            .map_err(|e| model_error(path, format!("metadata `{}` is not a number: {e}", keys::RECEPTIVE_RADIUS)))?;
-        let flops_per_pixel = get(keys::FLOPS_PER_PIXEL)?
-            .parse::<f64>()
-            .map_err(|e| model_error(path, format!("metadata `{}` is not a number: {e}", keys::FLOPS_PER_PIXEL)))?;
-        let architecture = meta.custom(keys::ARCHITECTURE).unwrap_or_default();
-        drop(meta);
+        let model = Opened::open(env, path, threads)?;
+        let common = model.common(contract::CONTRACT_VERSION, V1_HINT, variant)?;
+        model.expect(keys::COMPONENT, component.name(), " (the file's name)")?;
+        model.expect(keys::KERNEL_SIZE, &contract::KERNEL_SIZE.to_string(), "")?;
+        let architecture = model.meta.get(keys::ARCHITECTURE).cloned().unwrap_or_default();
 
-        check_outlet(path, session.inputs(), "color", COLOR_CHANNELS)?;
-        check_outlet(path, session.inputs(), "features", variant.feature_channels())?;
-        check_outlet(path, session.outputs(), "kernel", TAPS)?;
+        check_outlet(path, model.session.inputs(), "color", COLOR_CHANNELS)?;
+        check_outlet(path, model.session.inputs(), "features", common.features.feature_channels())?;
+        check_outlet(path, model.session.outputs(), "kernel", TAPS)?;
 
-        let info =
-            ModelInfo { variant, component, path: path.to_path_buf(), receptive_radius, flops_per_pixel, architecture };
-        Ok(Network { session, info })
+        let info = ModelInfo {
+            variant,
+            component: Some(component),
+            contract: 1,
+            features: common.features,
+            path: path.to_path_buf(),
+            receptive_radius: common.receptive_radius,
+            flops_per_pixel: common.flops_per_pixel,
+            architecture,
+            kernel_size: contract::KERNEL_SIZE,
+            levels: 1,
+        };
+        Ok(Network { session: model.session, info })
     }
 
     /// Runs the network on one region (`color` is `[10, h, w]`, `features` `[C, h, w]`) and
@@ -104,7 +195,7 @@ impl Network {
     ) -> Result<R, EngineError> {
         let c = features.len() / (h * w);
         let fail = |e: ort::Error| {
-            EngineError::Inference(format!("{} {}: {e}", self.info.variant.name(), self.info.component.name()))
+            EngineError::Inference(format!("{} {}: {e}", self.info.variant.name(), self.info.component_name()))
         };
         let color = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], color)).map_err(fail)?;
         let features = TensorRef::from_array_view(([1usize, c, h, w], features)).map_err(fail)?;
@@ -116,6 +207,166 @@ impl Network {
             )));
         }
         Ok(consume(logits))
+    }
+}
+
+/// A contract-v2 graph: both components, kernels at several scales, in one session.
+pub struct MultiScaleNetwork {
+    session: Session,
+    pub info: ModelInfo,
+    /// Region sides must be multiples of this (2^(levels − 1)).
+    pub size_multiple: usize,
+}
+
+/// Largest pyramid depth the engine accepts (a 2^15-pixel pooling grid).
+const MAX_LEVELS: usize = 16;
+
+impl MultiScaleNetwork {
+    /// Loads `path` and checks it against contract v2 for `variant`.
+    pub fn load(
+        env: &ort::environment::Environment,
+        path: &Path,
+        variant: Variant,
+        threads: usize,
+    ) -> Result<MultiScaleNetwork, EngineError> {
+        let model = Opened::open(env, path, threads)?;
+        let common = model.common(contract::CONTRACT_V2, V2_HINT, variant)?;
+        let kernel_size: usize = model.number(keys::KERNEL_SIZE)?;
+        if kernel_size % 2 == 0 {
+            return Err(model_error(
+                path,
+                format!("metadata `{}` is {kernel_size}, expected an odd number", keys::KERNEL_SIZE),
+            ));
+        }
+        let levels: usize = model.number(keys::LEVELS)?;
+        if !(1..=MAX_LEVELS).contains(&levels) {
+            return Err(model_error(
+                path,
+                format!("metadata `{}` is {levels}, expected 1 to {MAX_LEVELS}", keys::LEVELS),
+            ));
+        }
+        let size_multiple = 1usize << (levels - 1);
+        model.expect(
+            keys::SIZE_MULTIPLE,
+            &size_multiple.to_string(),
+            &format!(" (2^(levels − 1), levels = {levels})"),
+        )?;
+        let architecture = model.get(keys::ARCHITECTURE)?.to_string();
+
+        let inputs = model.session.inputs();
+        let expected_inputs = [
+            ("diffuse", COLOR_CHANNELS),
+            ("specular", COLOR_CHANNELS),
+            ("features", common.features.feature_channels()),
+        ];
+        let mut expected_outputs = Vec::new();
+        for l in 0..levels {
+            expected_outputs.push((format!("kernel_{l}"), 2 * kernel_size * kernel_size));
+            if l + 1 < levels {
+                expected_outputs.push((format!("blend_{l}"), 2));
+            }
+        }
+        for (name, channels) in expected_inputs {
+            check_outlet(path, inputs, name, channels)?;
+        }
+        for (name, channels) in &expected_outputs {
+            check_outlet(path, model.session.outputs(), name, *channels).map_err(|e| with_levels_hint(e, levels))?;
+        }
+        check_no_extra(path, "input", inputs, expected_inputs.iter().map(|e| e.0))?;
+        check_no_extra(path, "output", model.session.outputs(), expected_outputs.iter().map(|e| e.0.as_str()))
+            .map_err(|e| with_levels_hint(e, levels))?;
+
+        let info = ModelInfo {
+            variant,
+            component: None,
+            contract: 2,
+            features: common.features,
+            path: path.to_path_buf(),
+            receptive_radius: common.receptive_radius,
+            flops_per_pixel: common.flops_per_pixel,
+            architecture,
+            kernel_size,
+            levels,
+        };
+        Ok(MultiScaleNetwork { session: model.session, info, size_multiple })
+    }
+
+    /// Runs the graph on one region (sides multiples of `size_multiple`; `diffuse` and
+    /// `specular` are `[10, h, w]`, `features` `[C, h, w]`) and hands the two components'
+    /// pyramids of logits to `consume`, without copying them.
+    pub fn run<R>(
+        &mut self,
+        diffuse: &[f32],
+        specular: &[f32],
+        features: &[f32],
+        h: usize,
+        w: usize,
+        consume: impl FnOnce([Pyramid; 2]) -> R,
+    ) -> Result<R, EngineError> {
+        let c = features.len() / (h * w);
+        let (k, levels) = (self.info.kernel_size, self.info.levels);
+        let name = self.info.variant;
+        let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
+        let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
+        let specular = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], specular)).map_err(fail)?;
+        let features = TensorRef::from_array_view(([1usize, c, h, w], features)).map_err(fail)?;
+        let outputs = self
+            .session
+            .run(ort::inputs!["diffuse" => diffuse, "specular" => specular, "features" => features])
+            .map_err(fail)?;
+        let tensor = |output: String, channels: usize, l: usize| -> Result<&[f32], EngineError> {
+            let (shape, data) = outputs[output.as_str()].try_extract_tensor::<f32>().map_err(fail)?;
+            let want = [1, channels as i64, (h >> l) as i64, (w >> l) as i64];
+            if shape.iter().copied().collect::<Vec<i64>>() != want {
+                return Err(EngineError::Inference(format!(
+                    "{name}: output `{output}` has shape {shape:?}, expected {want:?} for a {w}x{h} region"
+                )));
+            }
+            Ok(data)
+        };
+        let mut pyramids = [(); 2].map(|_| Pyramid { kernel_size: k, kernels: Vec::new(), blends: Vec::new() });
+        for l in 0..levels {
+            let kernels = tensor(format!("kernel_{l}"), 2 * k * k, l)?;
+            let (d, s) = kernels.split_at(kernels.len() / 2);
+            pyramids[0].kernels.push(d);
+            pyramids[1].kernels.push(s);
+            if l + 1 < levels {
+                let blends = tensor(format!("blend_{l}"), 2, l)?;
+                let (d, s) = blends.split_at(blends.len() / 2);
+                pyramids[0].blends.push(d);
+                pyramids[1].blends.push(s);
+            }
+        }
+        Ok(consume(pyramids))
+    }
+}
+
+fn with_levels_hint(e: EngineError, levels: usize) -> EngineError {
+    match e {
+        EngineError::Model { path, reason } => EngineError::Model {
+            path,
+            reason: format!(
+                "{reason}; `{}` = {levels} expects outputs kernel_0 … kernel_{} and blend_0 … blend_{}",
+                keys::LEVELS,
+                levels - 1,
+                levels as isize - 2
+            ),
+        },
+        other => other,
+    }
+}
+
+/// Refuses graph inputs/outputs other than `expected`.
+fn check_no_extra<'a>(
+    path: &Path,
+    kind: &str,
+    outlets: &[ort::value::Outlet],
+    expected: impl Iterator<Item = &'a str>,
+) -> Result<(), EngineError> {
+    let expected: HashSet<&str> = expected.collect();
+    match outlets.iter().find(|o| !expected.contains(o.name())) {
+        Some(extra) => Err(model_error(path, format!("graph has an unexpected {kind} `{}`", extra.name()))),
+        None => Ok(()),
     }
 }
 
@@ -143,53 +394,129 @@ fn check_outlet(path: &Path, outlets: &[ort::value::Outlet], name: &str, channel
     }
 }
 
-/// The two networks of one variant.
-pub struct ModelPair {
-    pub variant: Variant,
-    pub diffuse: Network,
-    pub specular: Network,
+/// The networks of one variant: two contract-v1 graphs or one contract-v2 graph.
+pub enum Networks {
+    Pair { diffuse: Network, specular: Network },
+    MultiScale(MultiScaleNetwork),
 }
 
-impl ModelPair {
-    /// Context a tile needs around it: the larger receptive radius of the two networks.
-    pub fn receptive_radius(&self) -> usize {
-        self.diffuse.info.receptive_radius.max(self.specular.info.receptive_radius)
-    }
+/// A loaded variant.
+pub struct VariantModel {
+    pub variant: Variant,
+    /// The feature inputs its networks take.
+    pub features: FeatureSet,
+    pub networks: Networks,
+}
 
-    pub fn flops_per_pixel(&self) -> f64 {
-        self.diffuse.info.flops_per_pixel + self.specular.info.flops_per_pixel
-    }
-
-    pub fn network(&mut self, component: Component) -> &mut Network {
-        match component {
-            Component::Diffuse => &mut self.diffuse,
-            Component::Specular => &mut self.specular,
+impl VariantModel {
+    pub fn infos(&self) -> Vec<&ModelInfo> {
+        match &self.networks {
+            Networks::Pair { diffuse, specular } => vec![&diffuse.info, &specular.info],
+            Networks::MultiScale(net) => vec![&net.info],
         }
     }
+
+    /// Context a tile's network input needs around its core: the largest declared
+    /// receptive radius, at least what the reconstruction reads.
+    pub fn receptive_radius(&self) -> usize {
+        let declared = self.infos().iter().map(|i| i.receptive_radius).max().unwrap_or(0);
+        match &self.networks {
+            Networks::Pair { .. } => declared.max(contract::KERNEL_RADIUS),
+            Networks::MultiScale(net) => declared.max(super::multiscale::reach(net.info.kernel_size, net.info.levels)),
+        }
+    }
+
+    /// What tile origins, tile sides and region sides must be multiples of.
+    pub fn size_multiple(&self) -> usize {
+        match &self.networks {
+            Networks::Pair { .. } => 1,
+            Networks::MultiScale(net) => net.size_multiple,
+        }
+    }
+
+    /// FLOPs per pixel of both components.
+    pub fn flops_per_pixel(&self) -> f64 {
+        self.infos().iter().map(|i| i.flops_per_pixel).sum()
+    }
 }
 
-/// Loads the variants found under `dir` (`dir/full`, `dir/nocov`).
+/// Loads the variant in `dir` (named after it), or `None` when `dir` holds no model file.
+fn load_variant(
+    env: &ort::environment::Environment,
+    dir: &Path,
+    threads: usize,
+) -> Result<Option<VariantModel>, EngineError> {
+    let v2 = dir.join("model.onnx");
+    let v1 = Component::ALL.map(|c| dir.join(format!("{}.onnx", c.name())));
+    let has_v1 = v1.iter().any(|p| p.exists());
+    if !v2.exists() && !has_v1 {
+        return Ok(None);
+    }
+    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let variant = Variant::parse(&name).ok_or_else(|| {
+        model_error(
+            dir,
+            format!(
+                "`{name}` is not a valid variant name (at most {} ASCII letters, digits, `_`, `-`, `.`)",
+                Variant::MAX_LEN
+            ),
+        )
+    })?;
+    if v2.exists() && has_v1 {
+        return Err(model_error(
+            dir,
+            "holds both model.onnx (contract 2) and diffuse.onnx/specular.onnx (contract 1); keep one",
+        ));
+    }
+    if v2.exists() {
+        let net = MultiScaleNetwork::load(env, &v2, variant, threads)?;
+        return Ok(Some(VariantModel { variant, features: net.info.features, networks: Networks::MultiScale(net) }));
+    }
+    let [d, s] = &v1;
+    let diffuse = Network::load(env, d, variant, Component::Diffuse, threads)?;
+    let specular = Network::load(env, s, variant, Component::Specular, threads)?;
+    if diffuse.info.features != specular.info.features {
+        return Err(model_error(
+            dir,
+            format!(
+                "diffuse.onnx takes the `{}` features but specular.onnx the `{}` ones",
+                diffuse.info.features.name(),
+                specular.info.features.name()
+            ),
+        ));
+    }
+    Ok(Some(VariantModel { variant, features: diffuse.info.features, networks: Networks::Pair { diffuse, specular } }))
+}
+
+/// Loads every variant under `dir`: each subdirectory holding a model (`model.onnx`, or
+/// `diffuse.onnx` and `specular.onnx`), in name order.
 pub fn load_models(
     env: &ort::environment::Environment,
     dir: &Path,
     threads: usize,
-) -> Result<Vec<ModelPair>, EngineError> {
-    let mut pairs = Vec::new();
-    for variant in Variant::ALL {
-        let vdir = dir.join(variant.name());
-        if !vdir.is_dir() {
-            continue;
+) -> Result<Vec<VariantModel>, EngineError> {
+    let mut dirs: Vec<PathBuf> = match std::fs::read_dir(dir) {
+        Ok(entries) => entries
+            .filter_map(Result::ok)
+            .map(|e| e.path())
+            .filter(|p| p.is_dir() && !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
+            .collect(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(model_error(dir, format!("cannot list the directory: {e}"))),
+    };
+    dirs.sort();
+    let mut models = Vec::new();
+    for d in dirs {
+        if let Some(m) = load_variant(env, &d, threads)? {
+            models.push(m);
         }
-        let load = |component: Component| {
-            Network::load(env, &vdir.join(format!("{}.onnx", component.name())), variant, component, threads)
-        };
-        pairs.push(ModelPair { variant, diffuse: load(Component::Diffuse)?, specular: load(Component::Specular)? });
     }
-    if pairs.is_empty() {
+    if models.is_empty() {
         return Err(model_error(
             dir,
-            "no model variants found (expected full/ or nocov/ holding diffuse.onnx and specular.onnx)",
+            "no model variants found (expected subdirectories such as full/ or nocov/ holding model.onnx, or \
+             diffuse.onnx and specular.onnx)",
         ));
     }
-    Ok(pairs)
+    Ok(models)
 }

@@ -8,7 +8,7 @@
 
 use rayon::prelude::*;
 
-use super::contract::{Variant, COLOR_CHANNELS};
+use super::contract::{FeatureSet, COLOR_CHANNELS};
 use crate::frame::{Buffer, Frame};
 
 /// Added to albedo before dividing the diffuse color by it (KPCN's value).
@@ -73,17 +73,17 @@ fn scaled(x: f32, m: f32) -> f32 {
     }
 }
 
-/// Preprocesses `rect` of `frame` for `variant`.
+/// Preprocesses `rect` of `frame` for a model taking the feature set `set`.
 ///
 /// # Panics
-/// If `variant` is `Full` and the frame has no covariance (callers pick the variant from the
+/// If `set` is `Full` and the frame has no covariance (callers pick the variant from the
 /// frame), or if `rect` is not inside the frame.
-pub fn preprocess(frame: &Frame, stats: &FrameStats, variant: Variant, rect: Rect) -> Inputs {
+pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect) -> Inputs {
     assert!(rect.x + rect.w <= frame.width && rect.y + rect.h <= frame.height, "region outside the frame");
     let n = rect.pixels();
     let mut diffuse = vec![0f32; COLOR_CHANNELS * n];
     let mut specular = vec![0f32; COLOR_CHANNELS * n];
-    let mut features = vec![0f32; variant.feature_channels() * n];
+    let mut features = vec![0f32; set.feature_channels() * n];
 
     let albedo = frame.planes(Buffer::Albedo);
     // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)². Negative colors and
@@ -129,7 +129,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, variant: Variant, rect: Rec
     }
     // Features: normal (3), albedo (3), depth, [covariance]; their variances; gx; gy.
     {
-        let base_count = if variant.uses_covariance() { 8 } else { 7 };
+        let base_count = if set.uses_covariance() { 8 } else { 7 };
         let var_count = base_count - 4;
         let (base, rest) = features.split_at_mut(base_count * n);
         let (vars, rest) = rest.split_at_mut(var_count * n);
@@ -148,7 +148,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, variant: Variant, rect: Rec
             emit(&|i| plane[i]);
         }
         emit(&|i| scaled(depth[i], stats.depth_max));
-        if variant.uses_covariance() {
+        if set.uses_covariance() {
             let cov = frame.plane(Buffer::Covariance, 0);
             emit(&|i| scaled(cov[i], stats.covariance_max));
         }
@@ -158,7 +158,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, variant: Variant, rect: Rec
             (Buffer::AlbedoVariance, 1.0),
             (Buffer::DepthVariance, inverse_square(stats.depth_max)),
         ];
-        if variant.uses_covariance() {
+        if set.uses_covariance() {
             var_buffers.push((Buffer::CovarianceVariance, inverse_square(stats.covariance_max)));
         }
         for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {

@@ -67,12 +67,12 @@ unsafe fn filter_row_avx2(logits: &[f32], color: &[f32], region: Rect, core: Rec
 
 /// `a * b + c`, fused where the build has FMA. Without it `f32::mul_add` is a library call,
 /// so the portable build multiplies and adds.
-trait MulAdd {
+pub(super) trait MulAdd {
     fn mul_add(a: f32, b: f32, c: f32) -> f32;
 }
 
-struct Fused;
-struct Unfused;
+pub(super) struct Fused;
+pub(super) struct Unfused;
 
 impl MulAdd for Fused {
     #[inline(always)]
@@ -181,7 +181,7 @@ fn pad_row(src: &[f32], rx0: usize, dst: &mut [f32]) {
 /// exponent bits. Relative error below 3e-7. Arguments below −87 give ~1e-38, not 0, which
 /// no softmax weight can tell apart.
 #[inline(always)]
-fn exp_nonpositive<M: MulAdd>(x: f32) -> f32 {
+pub(super) fn exp_nonpositive<M: MulAdd>(x: f32) -> f32 {
     const LN2_HI: f32 = 0.693_359_4;
     const LN2_LO: f32 = -2.121_944_4e-4;
     // Adding and removing 1.5 * 2^23 rounds to the nearest integer without `floor`, which

@@ -115,6 +115,10 @@ pub fn options_from_pb(o: Option<pb::JobOptions>) -> Result<JobOptions, Status> 
             pb::Variant::Full => Some(Variant::Full),
             pb::Variant::Nocov => Some(Variant::Nocov),
         };
+    let variant = match o.variant_name.as_str() {
+        "" => variant,
+        name => Some(Variant::parse(name).ok_or_else(|| invalid(format!("`{name}` is not a variant name")))?),
+    };
     Ok(JobOptions {
         priority: priority_from_pb(o.priority)?.unwrap_or_default(),
         layers,

@@ -263,10 +263,9 @@ fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions,
     }
     let variant = match q.variant.as_deref() {
         None | Some("") | Some("auto") => None,
-        Some(v) => Some(
-            Variant::parse(v)
-                .ok_or_else(|| Error::BadRequest(format!("unknown variant `{v}` (expected auto, full or nocov)")))?,
-        ),
+        Some(v) => Some(Variant::parse(v).ok_or_else(|| {
+            Error::BadRequest(format!("`{v}` is not a variant name (expected auto or the name of a loaded variant)"))
+        })?),
     };
     Ok(JobOptions {
         priority,

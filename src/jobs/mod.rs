@@ -104,6 +104,7 @@ impl Settings {
     pub fn from_args(args: &ServeArgs) -> Settings {
         let mut engine = EngineConfig::new(&args.models);
         engine.tile = args.tile;
+        engine.tile_v2 = args.tile_v2;
         engine.threads = args.threads_per_worker();
         engine.ort_library = args.ort_library.clone();
         Settings {
@@ -328,6 +329,13 @@ impl JobService {
             Phase::Loading => return Err(Error::Unavailable("not ready: the models are still loading".into())),
             Phase::Draining | Phase::Stopped => {
                 return Err(Error::Unavailable("shutting down: not accepting new jobs".into()))
+            }
+        }
+        if let (Some(v), Some(models)) = (options.variant, self.models()) {
+            if !models.iter().any(|m| m.variant == v.name()) {
+                let mut loaded: Vec<&str> = models.iter().map(|m| m.variant.as_str()).collect();
+                loaded.dedup();
+                return Err(Error::BadRequest(format!("no `{v}` model is loaded (loaded: {})", loaded.join(", "))));
             }
         }
         if let Some(key) = &options.idempotency_key {

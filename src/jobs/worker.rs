@@ -73,9 +73,9 @@ fn describe(engine: &Engine) -> Vec<ModelDescription> {
         .into_iter()
         .map(|m| ModelDescription {
             variant: m.variant.name().to_string(),
-            component: m.component.name().to_string(),
+            component: m.component_name().to_string(),
             file: m.path.display().to_string(),
-            contract: crate::engine::contract::CONTRACT_VERSION.to_string(),
+            contract: m.contract.to_string(),
             receptive_radius: m.receptive_radius,
             flops_per_pixel: m.flops_per_pixel,
             architecture: m.architecture.clone(),

@@ -16,6 +16,14 @@ so the kernels are far from uniform) are exported for both variants. Then:
    `diffuse.*` / `specular.*` layers. Per sample, |engine - torch| / max(|torch|, 1e-3)
    must be <= 1e-4 when the engine writes float32 (2^-10, half's precision, if it writes
    half).
+4. Contract v2: a random multi-scale network (msnet.py, 4 levels, 5x5 kernels, heads
+   scaled so kernels and blends are far from uniform) exported by export_ms.py for both
+   variants; `run --tile-v2 16` on a 44x60 frame (not a multiple of the size multiple 8, so
+   the engine pads; 16-px tiles with a halo of the receptive radius) agrees with the torch
+   network on the whole preprocessed frame padded by edge replication (`pad_to_multiple`),
+   plus recon_ms's reconstruction, cropped, and v1's inverse transforms, to 1e-5 relative
+   (float32 output; measured: 5e-7). The torch side filters in float32 (recon_ms casts to
+   it), so the tolerance covers two float32 reconstructions and onnxruntime against torch.
 
 The torch reference runs the network on the whole frame, so the conv's zero padding
 applies at the frame border only: the engine's tiles must take their context from the
@@ -33,7 +41,7 @@ import torch
 from mcdenoise_train.contract import COMPONENTS, EPS, NOCOV_INDICES
 from mcdenoise_train.export import export_onnx, random_models, scale_head
 from mcdenoise_train.frames import exr_pixel_types, read_exr, synthetic_frame, write_exr
-from mcdenoise_train.recon import reconstruct
+from mcdenoise_train.recon import inverse_diffuse, inverse_specular, reconstruct
 
 H, W = 40, 48
 TILE = 32
@@ -212,4 +220,74 @@ def test_run_matches_torch(request, variant):
             assert name in got, f"{out} has no channel {name!r}; channels: {sorted(got)}"
             assert got[name].shape == (H, W), name
             tol = 1e-4 if types[name] == "FLOAT" else 2.0**-10
+            _compare(name, got[name], ref[i], tol)
+
+
+# --- Contract v2 ---------------------------------------------------------------------------
+
+H2, W2 = 44, 60
+TILE2 = 16
+NET2 = dict(ext_width=6, ext_blocks=1, enc=(8, 12, 12), dec=(8, 8, 12), kernel_size=5, levels=4)
+HEAD_GAIN2 = 15.0
+
+
+@pytest.fixture(scope="module")
+def case_v2(tmp_path_factory):
+    """Frames and a models directory with a random contract-v2 network per variant."""
+    from mcdenoise_train.export_ms import export_onnx as export_v2, nocov_from_full
+    from mcdenoise_train.msnet import MSNet
+
+    root = tmp_path_factory.mktemp("parity-v2")
+    paths = {}
+    for v, cov in (("full", True), ("nocov", False)):
+        paths[v] = root / f"frame-{v}.exr"
+        write_exr(paths[v], synthetic_frame(H2, W2, seed=5, covariance=cov))
+    torch.manual_seed(17)
+    full = MSNet(28, **NET2).eval()
+    with torch.no_grad():
+        for h in [*full.kernel_heads, *full.blend_heads]:
+            h.weight.mul_(HEAD_GAIN2)
+    nets = {"full": full, "nocov": nocov_from_full(full)}
+    for v, net in nets.items():
+        export_v2(net, root / "models" / v / "model.onnx", v)
+    return dict(root=root, paths=paths, nets=nets, models=root / "models")
+
+
+@pytest.mark.parametrize("variant", ["full", "nocov"])
+def test_run_matches_torch_v2(request, variant):
+    from mcdenoise_train.msnet import pad_to_multiple
+    from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
+
+    exe = require_engine()
+    case = request.getfixturevalue("case_v2")
+    root, net = case["root"], case["nets"][variant]
+    arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz")
+    t = lambda k: torch.from_numpy(arrs[k])[None]
+    m = net.size_multiple
+    assert H2 % m and W2 % m, "the frame should need padding"
+    pad = lambda x: pad_to_multiple(x, m)
+    with torch.no_grad():
+        outputs = net(pad(t("diffuse_color")), pad(t("specular_color")), pad(t("features")))
+        kernels, blends = split_outputs(outputs, net.levels)
+        pre = {
+            c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3])[..., :H2, :W2].double()
+            for c in COMPONENTS
+        }
+    d = inverse_diffuse(pre["diffuse"], t("albedo").double())[0].numpy()
+    s = inverse_specular(pre["specular"])[0].numpy()
+    expect = {"": d + s, "diffuse.": d, "specular.": s}
+    # The kernels are far from uniform: the result differs from the noisy input.
+    assert np.abs(expect[""] - arrs["noisy"]).max() > 0.05 * np.abs(arrs["noisy"]).max()
+
+    out = root / f"out-{variant}.exr"
+    engine(exe, "run", case["paths"][variant], "-o", out, "--models", case["models"],
+           "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", variant)
+    got = read_exr(out)
+    types = exr_pixel_types(out)
+    for prefix, ref in expect.items():
+        for i, c in enumerate("RGB"):
+            name = prefix + c
+            assert name in got, f"{out} has no channel {name!r}; channels: {sorted(got)}"
+            assert got[name].shape == (H2, W2), name
+            tol = 1e-5 if types[name] == "FLOAT" else 2.0**-10
             _compare(name, got[name], ref[i], tol)

@@ -1,0 +1,552 @@
+//! Contract-v2 reconstruction: per-pixel k×k kernels at `L` pyramid levels, blended coarse to
+//! fine (docs/model-contract.md, "Model contract v2"; Vogels et al. 2018).
+//!
+//! ```text
+//! c_0 = c,  c_{l+1} = avgpool2x2(c_l)
+//! f_l = Σ_t softmax(kernel_l)_t · c_l(x+dx_t, y+dy_t)      edge replication at the region border
+//! o_{L−1} = f_{L−1}
+//! o_l = f_l + σ(blend_l) · (up(o_{l+1}) − up(avgpool2x2(f_l)))
+//! ```
+//!
+//! `up` is linear, so the engine upsamples the difference `o_{l+1} − avgpool2x2(f_l)` once
+//! instead of both terms. The filter is v1's (see [`super::reconstruct`]): softmax and
+//! weighted sum fused per output row, the weights never stored, tap-major so that logits
+//! and color rows are read contiguously, compiled for AVX2+FMA where the CPU has them. With
+//! k² = 25 taps the maximum is found in a first pass over the row's logits (they then stay in
+//! L1/L2 for the second) rather than online. Rows run in parallel on the caller's rayon pool.
+//! At level 0 only the pixels the core needs are filtered and blended.
+
+use rayon::prelude::*;
+
+use super::preprocess::Rect;
+use super::reconstruct::{exp_nonpositive, Fused, MulAdd, Unfused};
+
+/// One component's network outputs over a region, level by level.
+pub struct Pyramid<'a> {
+    /// Side of the kernels (odd).
+    pub kernel_size: usize,
+    /// `kernels[l]`: logits `[k²][h_l][w_l]` of level `l`, `h_l = h / 2^l`.
+    pub kernels: Vec<&'a [f32]>,
+    /// `blends[l]`: blend logits `[h_l][w_l]` of level `l < L − 1`.
+    pub blends: Vec<&'a [f32]>,
+}
+
+/// Reconstructs one component: `color` is `[3][h][w]` (the preprocessed color of a region
+/// whose sides are multiples of 2^(L−1)), `core` a rectangle in region coordinates, `out`
+/// receives `[3][core.h][core.w]`.
+pub fn reconstruct(p: &Pyramid, color: &[f32], w: usize, h: usize, core: Rect, out: &mut [f32]) {
+    let levels = p.kernels.len();
+    let k = p.kernel_size;
+    assert!(levels >= 1 && p.blends.len() == levels - 1, "{levels} kernel levels need {} blends", levels - 1);
+    assert!(k % 2 == 1, "kernel size {k} is not odd");
+    let m = 1 << (levels - 1);
+    assert!(w % m == 0 && h % m == 0, "region {w}x{h} is not a multiple of {m}");
+    assert_eq!(color.len(), 3 * w * h, "color does not cover the region");
+    assert!(core.x + core.w <= w && core.y + core.h <= h, "core outside the region");
+    assert_eq!(out.len(), 3 * core.pixels(), "output does not match the core");
+    for (l, kernel) in p.kernels.iter().enumerate() {
+        assert_eq!(kernel.len(), k * k * (w >> l) * (h >> l), "level {l} kernel does not cover the level");
+    }
+    for (l, blend) in p.blends.iter().enumerate() {
+        assert_eq!(blend.len(), (w >> l) * (h >> l), "level {l} blend does not cover the level");
+    }
+
+    if levels == 1 {
+        filter(p.kernels[0], color, w, h, k, core, out);
+        return;
+    }
+    // The color pyramid, levels 1 … L−1.
+    let mut pyramid: Vec<Vec<f32>> = Vec::with_capacity(levels - 1);
+    for l in 1..levels {
+        let fine = if l == 1 { color } else { &pyramid[l - 2] };
+        pyramid.push(avgpool(fine, w >> (l - 1), h >> (l - 1)));
+    }
+    // Coarsest level: o = f. Then each level from L−2 up to 1, whole.
+    let (wc, hc) = (w >> (levels - 1), h >> (levels - 1));
+    let mut coarse = vec![0f32; 3 * wc * hc];
+    filter(p.kernels[levels - 1], &pyramid[levels - 2], wc, hc, k, whole(wc, hc), &mut coarse);
+    for l in (1..levels - 1).rev() {
+        let (wl, hl) = (w >> l, h >> l);
+        let mut f = vec![0f32; 3 * wl * hl];
+        filter(p.kernels[l], &pyramid[l - 1], wl, hl, k, whole(wl, hl), &mut f);
+        let mut o = vec![0f32; 3 * wl * hl];
+        blend(&f, whole(wl, hl), &coarse, wl, hl, p.blends[l], whole(wl, hl), &mut o);
+        coarse = o;
+    }
+    // Level 0, only where the core needs it: the coarse pixels its upsampling reads (one
+    // beyond each side of the core's half) and the 2×2 blocks pooled into them.
+    let (lo_x, hi_x) = ((core.x / 2).saturating_sub(1), ((core.x + core.w - 1) / 2 + 1).min(w / 2 - 1));
+    let (lo_y, hi_y) = ((core.y / 2).saturating_sub(1), ((core.y + core.h - 1) / 2 + 1).min(h / 2 - 1));
+    let span = Rect { x: 2 * lo_x, y: 2 * lo_y, w: 2 * (hi_x + 1 - lo_x), h: 2 * (hi_y + 1 - lo_y) };
+    let mut f = vec![0f32; 3 * span.pixels()];
+    filter(p.kernels[0], color, w, h, k, span, &mut f);
+    blend(&f, span, &coarse, w, h, p.blends[0], core, out);
+}
+
+fn whole(w: usize, h: usize) -> Rect {
+    Rect { x: 0, y: 0, w, h }
+}
+
+/// 2×2 average pooling of `[3][h][w]` (`w`, `h` even).
+fn avgpool(src: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let (wc, hc) = (w / 2, h / 2);
+    let mut dst = vec![0f32; 3 * wc * hc];
+    dst.par_chunks_mut(wc).enumerate().for_each(|(row, d)| {
+        let (c, y) = (row / hc, row % hc);
+        let top = &src[c * w * h + 2 * y * w..][..w];
+        let bottom = &src[c * w * h + (2 * y + 1) * w..][..w];
+        for (x, d) in d.iter_mut().enumerate() {
+            *d = (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
+        }
+    });
+    dst
+}
+
+/// Weight pair of bilinear ×2 upsampling with half-pixel centres (PyTorch's
+/// `align_corners=False`) for output index `i` of a level `n` wide: the source indices and
+/// their weights, clamped at the edges.
+#[inline(always)]
+fn up_taps(i: usize, n: usize) -> (usize, usize, f32, f32) {
+    let c = i / 2;
+    if i % 2 == 0 {
+        if c == 0 {
+            (0, 0, 1.0, 0.0)
+        } else {
+            (c - 1, c, 0.25, 0.75)
+        }
+    } else if c + 1 < n {
+        (c, c + 1, 0.75, 0.25)
+    } else {
+        (c, c, 1.0, 0.0)
+    }
+}
+
+/// `o = f + σ(b) · up(coarse − avgpool(f))` over `target` (a rectangle of the level, `w`×`h`),
+/// written to `out` (`[3][target.h][target.w]`). `f` holds `[3][span.h][span.w]` for a `span`
+/// of even origin and size that contains the 2×2 blocks behind every coarse pixel the
+/// upsampling of `target` reads; `coarse` is the next level's output, `[3][h/2][w/2]`;
+/// `blend` the blend logits `[h][w]`.
+#[allow(clippy::too_many_arguments)]
+fn blend(f: &[f32], span: Rect, coarse: &[f32], w: usize, h: usize, blend: &[f32], target: Rect, out: &mut [f32]) {
+    let (wc, hc) = (w / 2, h / 2);
+    let (sx, sy) = (span.x / 2, span.y / 2);
+    let (sw, sh) = (span.w / 2, span.h / 2);
+    let sn = span.pixels();
+    // d = coarse − avgpool(f) over the span's coarse pixels.
+    let mut d = vec![0f32; 3 * sw * sh];
+    d.par_chunks_mut(sw).enumerate().for_each(|(row, d)| {
+        let (c, y) = (row / sh, row % sh);
+        let top = &f[c * sn + 2 * y * span.w..][..span.w];
+        let bottom = &f[c * sn + (2 * y + 1) * span.w..][..span.w];
+        let co = &coarse[c * wc * hc + (sy + y) * wc + sx..][..sw];
+        for x in 0..sw {
+            d[x] = co[x] - (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
+        }
+    });
+    let tn = target.pixels();
+    let (o0, rest) = out.split_at_mut(tn);
+    let (o1, o2) = rest.split_at_mut(tn);
+    let tw = target.w;
+    o0.par_chunks_mut(tw).zip(o1.par_chunks_mut(tw)).zip(o2.par_chunks_mut(tw)).enumerate().for_each(
+        |(row, ((o0, o1), o2))| {
+            let y = target.y + row;
+            let (i0, i1, a0, a1) = up_taps(y, hc);
+            let mut line = vec![0f32; sw];
+            let b = &blend[y * w + target.x..][..tw];
+            for (c, o) in [o0, o1, o2].into_iter().enumerate() {
+                // The row upsampled vertically, over the span's coarse columns.
+                let r0 = &d[c * sw * sh + (i0 - sy) * sw..][..sw];
+                let r1 = &d[c * sw * sh + (i1 - sy) * sw..][..sw];
+                for x in 0..sw {
+                    line[x] = a0 * r0[x] + a1 * r1[x];
+                }
+                let fr = &f[c * sn + (y - span.y) * span.w..][..span.w];
+                for (j, o) in o.iter_mut().enumerate() {
+                    let x = target.x + j;
+                    let (j0, j1, b0, b1) = up_taps(x, wc);
+                    let u = b0 * line[j0 - sx] + b1 * line[j1 - sx];
+                    *o = fr[x - span.x] + sigmoid(b[j]) * u;
+                }
+            }
+        },
+    );
+}
+
+/// The logistic function, through the branch-free exponential.
+#[inline(always)]
+fn sigmoid(x: f32) -> f32 {
+    let e = exp_nonpositive::<Unfused>(-x.abs());
+    let s = 1.0 / (1.0 + e);
+    if x >= 0.0 {
+        s
+    } else {
+        e * s
+    }
+}
+
+/// The softmax-weighted k×k filter of `color` (`[3][h][w]`) by `logits` (`[k²][h][w]`) over
+/// `rect`, into `out` (`[3][rect.h][rect.w]`); neighbours outside the level are clamped to
+/// its edge.
+fn filter(logits: &[f32], color: &[f32], w: usize, h: usize, k: usize, rect: Rect, out: &mut [f32]) {
+    let rn = rect.pixels();
+    let (out_r, rest) = out.split_at_mut(rn);
+    let (out_g, out_b) = rest.split_at_mut(rn);
+    let row = row_filter();
+    let level = Level { logits, color, w, h, k };
+    out_r
+        .par_chunks_mut(rect.w)
+        .zip(out_g.par_chunks_mut(rect.w))
+        .zip(out_b.par_chunks_mut(rect.w))
+        .enumerate()
+        .for_each(|(i, ((or, og), ob))| row(&level, rect.y + i, rect.x, [or, og, ob]));
+}
+
+/// One level's inputs.
+struct Level<'a> {
+    logits: &'a [f32],
+    color: &'a [f32],
+    w: usize,
+    h: usize,
+    k: usize,
+}
+
+type RowFilter = fn(&Level, usize, usize, [&mut [f32]; 3]);
+
+/// The row filter for this CPU, as in [`super::reconstruct`].
+fn row_filter() -> RowFilter {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            return |level, y, x0, out| {
+                // SAFETY: the CPU supports AVX2 and FMA (checked above).
+                unsafe { filter_row_avx2(level, y, x0, out) }
+            };
+        }
+    }
+    filter_row::<Unfused>
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn filter_row_avx2(level: &Level, y: usize, x0: usize, out: [&mut [f32]; 3]) {
+    filter_row::<Fused>(level, y, x0, out)
+}
+
+/// Output row `y` of the level, columns `x0 .. x0 + out.len()`.
+#[inline(always)]
+fn filter_row<M: MulAdd>(level: &Level, y: usize, x0: usize, out: [&mut [f32]; 3]) {
+    let &Level { logits, color, w, h, k } = level;
+    let n = w * h;
+    let r = k / 2;
+    let cw = out[0].len();
+    let start = y * w + x0;
+    let mut max = vec![f32::NEG_INFINITY; cw];
+    for t in 0..k * k {
+        for (m, &v) in max.iter_mut().zip(&logits[t * n + start..][..cw]) {
+            *m = m.max(v);
+        }
+    }
+    let mut sum = vec![0f32; cw];
+    let mut acc = [vec![0f32; cw], vec![0f32; cw], vec![0f32; cw]];
+    let mut padded = [vec![0f32; cw + 2 * r], vec![0f32; cw + 2 * r], vec![0f32; cw + 2 * r]];
+    for ky in 0..k {
+        let sy = (y + ky).saturating_sub(r).min(h - 1);
+        for (c, dst) in padded.iter_mut().enumerate() {
+            pad_row(&color[c * n + sy * w..][..w], x0, r, dst);
+        }
+        for kx in 0..k {
+            let l = &logits[(ky * k + kx) * n + start..][..cw];
+            let [p0, p1, p2] = &padded;
+            let (p0, p1, p2) = (&p0[kx..][..cw], &p1[kx..][..cw], &p2[kx..][..cw]);
+            let [a0, a1, a2] = &mut acc;
+            let (a0, a1, a2, sum, max) = (&mut a0[..cw], &mut a1[..cw], &mut a2[..cw], &mut sum[..cw], &max[..cw]);
+            for x in 0..cw {
+                let e = exp_nonpositive::<M>(l[x] - max[x]);
+                sum[x] += e;
+                a0[x] = M::mul_add(e, p0[x], a0[x]);
+                a1[x] = M::mul_add(e, p1[x], a1[x]);
+                a2[x] = M::mul_add(e, p2[x], a2[x]);
+            }
+        }
+    }
+    let [or, og, ob] = out;
+    for x in 0..cw {
+        let inv = 1.0 / sum[x];
+        or[x] = acc[0][x] * inv;
+        og[x] = acc[1][x] * inv;
+        ob[x] = acc[2][x] * inv;
+    }
+}
+
+/// `dst[j] = src[x0 + j − r]`, the index clamped to `src`.
+fn pad_row(src: &[f32], x0: usize, r: usize, dst: &mut [f32]) {
+    let first = x0 as isize - r as isize;
+    let lo = (-first).clamp(0, dst.len() as isize) as usize;
+    let hi = ((src.len() as isize - first).clamp(lo as isize, dst.len() as isize)) as usize;
+    dst[..lo].fill(src[0]);
+    dst[lo..hi].copy_from_slice(&src[(first + lo as isize) as usize..(first + hi as isize) as usize]);
+    dst[hi..].fill(src[src.len() - 1]);
+}
+
+/// Pixels of context (at full resolution) the reconstruction of one output pixel reads,
+/// from the color and from each level's kernel and blend logits: the halo tiles need for
+/// the reconstruction alone, whatever the pixel's position on the pooling grid.
+pub fn reach(kernel_size: usize, levels: usize) -> usize {
+    let r = (kernel_size / 2) as i64;
+    let mut worst = 0i64;
+    for p in 0..(1i64 << levels) {
+        // Interval of level-l pixels of o_l that o_0[p] depends on.
+        let (mut lo, mut hi) = (p, p);
+        for l in 0..levels {
+            let s = 1i64 << l;
+            let (next_lo, next_hi) = (lo.div_euclid(2) - 1, hi.div_euclid(2) + 1);
+            // f_l is read where o_l is and, below the coarsest level, in the 2×2 blocks
+            // pooled into the coarse pixels the upsampling reads.
+            let (flo, fhi) = if l + 1 < levels { (lo.min(2 * next_lo), hi.max(2 * next_hi + 1)) } else { (lo, hi) };
+            worst = worst.max(p - (flo - r) * s).max((fhi + r + 1) * s - 1 - p);
+            (lo, hi) = (next_lo, next_hi);
+        }
+    }
+    worst as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A small deterministic generator (SplitMix64), so the tests need no crate.
+    struct Rng(u64);
+
+    impl Rng {
+        fn next(&mut self) -> f32 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+        }
+
+        fn vec(&mut self, n: usize, lo: f32, hi: f32) -> Vec<f32> {
+            (0..n).map(|_| lo + (hi - lo) * self.next()).collect()
+        }
+    }
+
+    /// The spec, literally, in f64: every level whole, both terms upsampled, PyTorch's
+    /// bilinear formula with its source-index arithmetic.
+    fn scalar(k: usize, kernels: &[Vec<f32>], blends: &[Vec<f32>], color: &[f32], w: usize, h: usize) -> Vec<f64> {
+        type Img = (Vec<f64>, usize, usize); // [3][h][w]
+        let levels = kernels.len();
+        let pool = |(x, w, h): &Img| -> Img {
+            let (wc, hc) = (w / 2, h / 2);
+            let mut o = vec![0.0; 3 * wc * hc];
+            for c in 0..3 {
+                for y in 0..hc {
+                    for i in 0..wc {
+                        let at = |yy: usize, xx: usize| x[c * w * h + yy * w + xx];
+                        o[c * wc * hc + y * wc + i] =
+                            (at(2 * y, 2 * i) + at(2 * y, 2 * i + 1) + at(2 * y + 1, 2 * i) + at(2 * y + 1, 2 * i + 1))
+                                / 4.0;
+                    }
+                }
+            }
+            (o, wc, hc)
+        };
+        let up = |(x, w, h): &Img| -> Img {
+            let (wo, ho) = (2 * w, 2 * h);
+            let src = |d: usize, n: usize| -> (usize, usize, f64) {
+                let s = ((d as f64 + 0.5) / 2.0 - 0.5).max(0.0);
+                let i0 = s.floor() as usize;
+                let i1 = if i0 + 1 < n { i0 + 1 } else { i0 };
+                (i0, i1, s - i0 as f64)
+            };
+            let mut o = vec![0.0; 3 * wo * ho];
+            for c in 0..3 {
+                for y in 0..ho {
+                    let (y0, y1, ly) = src(y, *h);
+                    for xx in 0..wo {
+                        let (x0, x1, lx) = src(xx, *w);
+                        let at = |a: usize, b: usize| x[c * w * h + a * w + b];
+                        o[c * wo * ho + y * wo + xx] = (1.0 - ly) * ((1.0 - lx) * at(y0, x0) + lx * at(y0, x1))
+                            + ly * ((1.0 - lx) * at(y1, x0) + lx * at(y1, x1));
+                    }
+                }
+            }
+            (o, wo, ho)
+        };
+        let filt = |logits: &[f32], (x, w, h): &Img| -> Img {
+            let (w, h) = (*w, *h);
+            let (n, r) = (w * h, (k / 2) as isize);
+            let mut o = vec![0.0; 3 * n];
+            for y in 0..h as isize {
+                for xx in 0..w as isize {
+                    let p = y as usize * w + xx as usize;
+                    let mx = (0..k * k).map(|t| logits[t * n + p] as f64).fold(f64::MIN, f64::max);
+                    let (mut s, mut acc) = (0.0, [0.0; 3]);
+                    for dy in -r..=r {
+                        for dx in -r..=r {
+                            let t = ((dy + r) * k as isize + dx + r) as usize;
+                            let e = (logits[t * n + p] as f64 - mx).exp();
+                            let sy = (y + dy).clamp(0, h as isize - 1) as usize;
+                            let sx = (xx + dx).clamp(0, w as isize - 1) as usize;
+                            s += e;
+                            for (c, a) in acc.iter_mut().enumerate() {
+                                *a += e * x[c * n + sy * w + sx];
+                            }
+                        }
+                    }
+                    for c in 0..3 {
+                        o[c * n + p] = acc[c] / s;
+                    }
+                }
+            }
+            (o, w, h)
+        };
+        let mut cs: Vec<Img> = vec![(color.iter().map(|&v| v as f64).collect(), w, h)];
+        for l in 1..levels {
+            let next = pool(&cs[l - 1]);
+            cs.push(next);
+        }
+        let mut o = filt(&kernels[levels - 1], &cs[levels - 1]);
+        for l in (0..levels - 1).rev() {
+            let f = filt(&kernels[l], &cs[l]);
+            let (uo, upf) = (up(&o), up(&pool(&f)));
+            let (wl, hl) = (f.1, f.2);
+            let mut next = vec![0.0; 3 * wl * hl];
+            for c in 0..3 {
+                for i in 0..wl * hl {
+                    let s = 1.0 / (1.0 + (-(blends[l][i] as f64)).exp());
+                    let j = c * wl * hl + i;
+                    next[j] = f.0[j] + s * (uo.0[j] - upf.0[j]);
+                }
+            }
+            o = (next, wl, hl);
+        }
+        o.0
+    }
+
+    fn case(
+        rng: &mut Rng,
+        k: usize,
+        levels: usize,
+        w: usize,
+        h: usize,
+        spread: f32,
+    ) -> (Vec<Vec<f32>>, Vec<Vec<f32>>, Vec<f32>) {
+        let kernels = (0..levels).map(|l| rng.vec(k * k * (w >> l) * (h >> l), -spread, spread)).collect();
+        let blends = (0..levels - 1).map(|l| rng.vec((w >> l) * (h >> l), -6.0, 6.0)).collect();
+        (kernels, blends, rng.vec(3 * w * h, 0.0, 2.0))
+    }
+
+    fn run(
+        k: usize,
+        kernels: &[Vec<f32>],
+        blends: &[Vec<f32>],
+        color: &[f32],
+        w: usize,
+        h: usize,
+        core: Rect,
+    ) -> Vec<f32> {
+        let p = Pyramid {
+            kernel_size: k,
+            kernels: kernels.iter().map(Vec::as_slice).collect(),
+            blends: blends.iter().map(Vec::as_slice).collect(),
+        };
+        let mut out = vec![0f32; 3 * core.pixels()];
+        reconstruct(&p, color, w, h, core, &mut out);
+        out
+    }
+
+    #[test]
+    fn matches_a_scalar_implementation_of_the_spec() {
+        let mut rng = Rng(1);
+        for levels in 1..=5 {
+            for k in [3, 5] {
+                let m = 1 << (levels - 1);
+                // Odd multiples of the pooling grid, so every level has odd sides somewhere.
+                let (w, h) = (m * [7, 5, 3, 3, 3][levels - 1], m * [5, 3, 5, 3, 1][levels - 1]);
+                let (kernels, blends, color) = case(&mut rng, k, levels, w, h, 8.0);
+                let want = scalar(k, &kernels, &blends, &color, w, h);
+                let got = run(k, &kernels, &blends, &color, w, h, whole(w, h));
+                for (i, (g, e)) in got.iter().zip(&want).enumerate() {
+                    assert!(
+                        (*g as f64 - e).abs() <= 2e-6 * e.abs().max(1.0),
+                        "k {k}, L {levels}, {w}x{h}, sample {i}: {g} vs {e}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_core_equals_the_same_pixels_of_the_whole_region() {
+        let mut rng = Rng(2);
+        let (k, levels, w, h) = (5, 3, 36, 28);
+        let (kernels, blends, color) = case(&mut rng, k, levels, w, h, 4.0);
+        let all = run(k, &kernels, &blends, &color, w, h, whole(w, h));
+        for core in [
+            Rect { x: 0, y: 0, w: 1, h: 1 },
+            Rect { x: 5, y: 3, w: 13, h: 11 },
+            Rect { x: 35, y: 27, w: 1, h: 1 },
+            Rect { x: 8, y: 20, w: 28, h: 8 },
+        ] {
+            let part = run(k, &kernels, &blends, &color, w, h, core);
+            for c in 0..3 {
+                for y in 0..core.h {
+                    for x in 0..core.w {
+                        let a = part[c * core.pixels() + y * core.w + x];
+                        let b = all[c * w * h + (core.y + y) * w + core.x + x];
+                        assert_eq!(a, b, "core {core:?}, c{c} ({x},{y})");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_blend_of_zero_keeps_the_fine_level() {
+        // σ → 0: the fine filter alone, whatever the coarse levels hold; with an identity
+        // kernel at level 0 the output is the input.
+        let mut rng = Rng(3);
+        let (k, w, h) = (3, 8, 6);
+        let (mut kernels, _, color) = case(&mut rng, k, 2, w, h, 5.0);
+        kernels[0] = (0..k * k).flat_map(|t| vec![if t == k * k / 2 { 40.0 } else { -40.0 }; w * h]).collect();
+        let out = run(k, &kernels, &[vec![-80.0; w * h]], &color, w, h, whole(w, h));
+        for (a, b) in out.iter().zip(&color) {
+            assert!((a - b).abs() <= 1e-6, "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn the_reach_covers_every_pixel_that_changes_the_output() {
+        // Perturb one input sample at a time; the output at the centre must not move unless
+        // the sample lies within `reach` of it.
+        let mut rng = Rng(4);
+        for (k, levels) in [(3, 1), (3, 3), (5, 2), (5, 4)] {
+            let reach = reach(k, levels) as isize;
+            let m = 1 << (levels - 1);
+            let n = ((2 * reach as usize + 8) / m + 1) * m;
+            let (w, h) = (n, m);
+            let (kernels, blends, color) = case(&mut rng, k, levels, w, h, 3.0);
+            for px in [w / 2, w / 2 + 1] {
+                let core = Rect { x: px, y: 0, w: 1, h: 1 };
+                let base = run(k, &kernels, &blends, &color, w, h, core);
+                let mut farthest = 0isize;
+                for x in 0..w {
+                    let mut c = color.clone();
+                    for y in 0..h {
+                        c[y * w + x] += 1.0;
+                    }
+                    if run(k, &kernels, &blends, &c, w, h, core)[0] != base[0] {
+                        farthest = farthest.max((x as isize - px as isize).abs());
+                    }
+                }
+                assert!(
+                    farthest <= reach,
+                    "k {k}, L {levels}: a change {farthest} px away moved the output; reach {reach}"
+                );
+                assert!(farthest > 0);
+            }
+        }
+        assert_eq!(reach(21, 1), 10);
+    }
+}

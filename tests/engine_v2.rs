@@ -1,0 +1,285 @@
+//! The engine on contract-v2 graphs (the tiny random multi-scale models in
+//! tests/fixtures/models/tiny-v2), alone and beside contract-v1 ones: tiling, padding,
+//! variants named after their directory, and the loader's checks.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+
+use common::*;
+use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig, FeatureSet, Variant};
+
+fn tiny_v2() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/tiny-v2")
+}
+
+fn engine_at(dir: &Path, tile: usize) -> Engine {
+    let mut config = EngineConfig::new(dir);
+    (config.tile, config.tile_v2) = (tile, tile);
+    config.threads = 2;
+    Engine::load(&config).expect("models load (is the ONNX Runtime library installed? run scripts/setup)")
+}
+
+#[test]
+fn tiled_output_equals_whole_frame_output() {
+    // 90×70 is not a multiple of the models' size multiple (4): the frame's last row and
+    // column are replicated; tiles of 18 are rounded up to 20.
+    for cov in [true, false] {
+        let frame = synthetic_frame(90, 70, cov);
+        let whole = engine_at(&tiny_v2(), 0).denoise(&frame, None, &mut |_| true).unwrap();
+        assert_eq!((whole.tiles, whole.variant), (1, if cov { Variant::Full } else { Variant::Nocov }));
+        for tile in [16, 18, 32] {
+            let tiled = engine_at(&tiny_v2(), tile).denoise(&frame, None, &mut |_| true).unwrap();
+            assert!(tiled.tiles >= 9, "tile {tile}: {} tiles", tiled.tiles);
+            for c in 0..3 {
+                for (name, a, b) in [
+                    ("color", &tiled.color[c], &whole.color[c]),
+                    ("diffuse", &tiled.diffuse[c], &whole.diffuse[c]),
+                    ("specular", &tiled.specular[c], &whole.specular[c]),
+                ] {
+                    let d = max_rel_diff(a, b);
+                    assert!(d <= 1e-5, "cov {cov}, tile {tile}, {name} {c}: relative difference {d}");
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn the_output_is_finite_and_the_components_add_up() {
+    let out = engine_at(&tiny_v2(), 32).denoise(&synthetic_frame(45, 37, true), None, &mut |_| true).unwrap();
+    for c in 0..3 {
+        assert!(out.color[c].iter().all(|v| v.is_finite() && *v >= 0.0));
+        for i in 0..out.color[c].len() {
+            assert!((out.color[c][i] - out.diffuse[c][i] - out.specular[c][i]).abs() <= 1e-6);
+        }
+    }
+    // Not the noisy input: the kernels filter.
+    let frame = synthetic_frame(45, 37, true);
+    let noisy = frame.color();
+    assert!(max_rel_diff(&out.color[0], &noisy[0]) > 1e-3);
+}
+
+#[test]
+fn models_report_their_contract_fields() {
+    let e = engine_at(&tiny_v2(), 0);
+    assert_eq!(e.variants(), vec![Variant::Full, Variant::Nocov]);
+    let models = e.models();
+    assert_eq!(models.len(), 2);
+    for m in &models {
+        assert_eq!((m.contract, m.component, m.component_name()), (2, None, "both"));
+        assert_eq!((m.kernel_size, m.levels, m.receptive_radius), (5, 3, 27));
+        assert!(m.path.ends_with("model.onnx"));
+        assert!(m.architecture.starts_with("msnet"), "{}", m.architecture);
+    }
+    assert_eq!(models[0].features, FeatureSet::Full);
+    assert_eq!(models[1].features, FeatureSet::Nocov);
+    assert_eq!(e.flops_per_pixel(Variant::Full), Some(9162.0));
+}
+
+// --- Model directories assembled from the fixtures --------------------------------------
+
+/// Replaces every occurrence of `from` by `to` (same length) in an ONNX file's bytes.
+fn rename(bytes: &[u8], from: &str, to: &str) -> Vec<u8> {
+    assert_eq!(from.len(), to.len());
+    let (from, to) = (from.as_bytes(), to.as_bytes());
+    let mut out = bytes.to_vec();
+    let mut i = 0;
+    let mut found = false;
+    while i + from.len() <= out.len() {
+        if &out[i..i + from.len()] == from {
+            out[i..i + from.len()].copy_from_slice(to);
+            found = true;
+            i += from.len();
+        } else {
+            i += 1;
+        }
+    }
+    assert!(found, "{} not found", String::from_utf8_lossy(from));
+    out
+}
+
+/// Sets metadata `key` to `value`: the old entry's key is renamed out of the way (same
+/// length) and a new `metadata_props` entry (ModelProto field 14) appended to the message.
+fn set_meta(bytes: &[u8], key: &str, value: &str) -> Vec<u8> {
+    let hidden = key.replacen("mcdenoise.", "mcdenoise_", 1);
+    let mut out = if bytes.windows(key.len()).any(|w| w == key.as_bytes()) {
+        rename(bytes, key, &hidden)
+    } else {
+        bytes.to_vec()
+    };
+    let mut entry = vec![0x0a, key.len() as u8];
+    entry.extend_from_slice(key.as_bytes());
+    entry.extend_from_slice(&[0x12, value.len() as u8]);
+    entry.extend_from_slice(value.as_bytes());
+    assert!(entry.len() < 128);
+    out.extend_from_slice(&[0x72, entry.len() as u8]);
+    out.extend_from_slice(&entry);
+    out
+}
+
+fn read(dir: &Path, variant: &str, file: &str) -> Vec<u8> {
+    std::fs::read(dir.join(variant).join(file)).unwrap()
+}
+
+fn write(root: &Path, variant: &str, file: &str, bytes: &[u8]) {
+    std::fs::create_dir_all(root.join(variant)).unwrap();
+    std::fs::write(root.join(variant).join(file), bytes).unwrap();
+}
+
+fn load_error(dir: &Path) -> String {
+    let mut config = EngineConfig::new(dir);
+    config.threads = 1;
+    match Engine::load(&config) {
+        Ok(e) => panic!("loaded a bad model set: {:?}", e.variants()),
+        Err(e) => e.to_string(),
+    }
+}
+
+/// A models directory holding `full` in contract v2, `nocov` in contract v1, `lin2020` (the
+/// v1 `full` pair renamed) and a directory without models.
+fn mixed() -> tempfile::TempDir {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path();
+    write(root, "full", "model.onnx", &read(&tiny_v2(), "full", "model.onnx"));
+    for c in ["diffuse", "specular"] {
+        let file = format!("{c}.onnx");
+        write(root, "nocov", &file, &read(&tiny_models(), "nocov", &file));
+        write(root, "lin2020", &file, &set_meta(&read(&tiny_models(), "full", &file), "mcdenoise.variant", "lin2020"));
+    }
+    std::fs::create_dir_all(root.join("notes")).unwrap();
+    std::fs::write(root.join("notes/README.md"), "not a model").unwrap();
+    tmp
+}
+
+#[test]
+fn any_directory_is_a_variant_and_contracts_mix() {
+    let dir = mixed();
+    let mut e = engine_at(dir.path(), 32);
+    let lin2020 = Variant::parse("lin2020").unwrap();
+    assert_eq!(e.variants(), vec![Variant::Full, lin2020, Variant::Nocov]);
+    let contracts: Vec<(String, u32)> = e.models().iter().map(|m| (m.variant.to_string(), m.contract)).collect();
+    assert_eq!(
+        contracts,
+        [("full", 2), ("lin2020", 1), ("lin2020", 1), ("nocov", 1), ("nocov", 1)].map(|(v, c)| (v.to_string(), c))
+    );
+
+    // Automatic choice: full (v2) with covariance, nocov (v1) without.
+    let with_cov = synthetic_frame(40, 36, true);
+    let without = synthetic_frame(40, 36, false);
+    assert_eq!(e.denoise(&with_cov, None, &mut |_| true).unwrap().variant, Variant::Full);
+    assert_eq!(e.denoise(&without, None, &mut |_| true).unwrap().variant, Variant::Nocov);
+
+    // Named: lin2020 takes the full features, so it needs covariance.
+    let out = e.denoise(&with_cov, Some(lin2020), &mut |_| true).unwrap();
+    assert_eq!(out.variant, lin2020);
+    // The same networks as the v1 `full` pair give the same result.
+    let v1 = engine(32).denoise(&with_cov, Some(Variant::Full), &mut |_| true).unwrap();
+    assert!(max_rel_diff(&out.color[1], &v1.color[1]) <= 1e-6);
+    let err = e.denoise(&without, Some(lin2020), &mut |_| true).err().unwrap().to_string();
+    assert!(err.contains("the `lin2020` model needs a `covariance` channel"), "{err}");
+    let err = e.denoise(&with_cov, Variant::parse("oidn"), &mut |_| true).err().unwrap().to_string();
+    assert!(err.contains("no `oidn` model is loaded (loaded: full, lin2020, nocov)"), "{err}");
+}
+
+#[test]
+fn without_full_or_nocov_a_variant_must_be_named() {
+    let tmp = tempfile::tempdir().unwrap();
+    write(
+        tmp.path(),
+        "wide",
+        "model.onnx",
+        &set_meta(&read(&tiny_v2(), "full", "model.onnx"), "mcdenoise.variant", "wide"),
+    );
+    let mut e = engine_at(tmp.path(), 0);
+    let err = e.denoise(&synthetic_frame(20, 20, true), None, &mut |_| true).err().unwrap().to_string();
+    assert!(err.contains("no `full` or `nocov` model is loaded (loaded: wide); name a variant"), "{err}");
+    assert!(e.denoise(&synthetic_frame(20, 20, true), Variant::parse("wide"), &mut |_| true).is_ok());
+}
+
+/// Loads a directory holding `full/model.onnx` edited by `edit`; returns the error.
+fn v2_error(edit: impl Fn(Vec<u8>) -> Vec<u8>) -> String {
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "full", "model.onnx", &edit(read(&tiny_v2(), "full", "model.onnx")));
+    load_error(tmp.path())
+}
+
+#[test]
+fn bad_contract_v2_models_are_refused_with_the_file_and_field_named() {
+    let cases: Vec<(Box<dyn Fn(Vec<u8>) -> Vec<u8>>, &str)> = vec![
+        (
+            Box::new(|b| set_meta(&b, "mcdenoise.contract", "1")),
+            "`mcdenoise.contract` is `1`, expected `2` (a contract-1 model is two files, diffuse.onnx and specular.onnx)",
+        ),
+        (Box::new(|b| rename(&b, "kernel_2", "kernel_7")), "graph has no `kernel_2`"),
+        (Box::new(|b| rename(&b, "blend_1", "blend_9")), "graph has no `blend_1`"),
+        (
+            Box::new(|b| set_meta(&b, "mcdenoise.size_multiple", "8")),
+            "`mcdenoise.size_multiple` is `8`, expected `4` (2^(levels − 1), levels = 3)",
+        ),
+        (
+            Box::new(|b| set_meta(&set_meta(&b, "mcdenoise.levels", "2"), "mcdenoise.size_multiple", "2")),
+            "graph has an unexpected output `kernel_2`",
+        ),
+        (
+            Box::new(|b| set_meta(&set_meta(&b, "mcdenoise.levels", "4"), "mcdenoise.size_multiple", "8")),
+            "`mcdenoise.levels` = 4 expects outputs kernel_0 … kernel_3 and blend_0 … blend_2",
+        ),
+        (Box::new(|b| set_meta(&b, "mcdenoise.kernel_size", "4")), "`mcdenoise.kernel_size` is 4, expected an odd number"),
+        (Box::new(|b| set_meta(&b, "mcdenoise.kernel_size", "3")), "`kernel_0` has 50 channels, expected 18"),
+        (Box::new(|b| set_meta(&b, "mcdenoise.levels", "many")), "`mcdenoise.levels` is not a number"),
+        (Box::new(|b| rename(&b, "mcdenoise.levels", "mcdenoise_levels")), "metadata `mcdenoise.levels` is missing"),
+        (Box::new(|b| rename(&b, "mcdenoise.architecture", "mcdenoise_architecture")), "`mcdenoise.architecture` is missing"),
+        (Box::new(|b| set_meta(&b, "mcdenoise.features", "normal.R")), "`mcdenoise.features` is `normal.R`"),
+        (Box::new(|b| rename(&b, "specular", "specul_r")), "graph has no `specular`"),
+    ];
+    for (edit, want) in cases {
+        let msg = v2_error(edit);
+        assert!(msg.contains("full/model.onnx") && msg.contains(want), "expected {want:?} in: {msg}");
+    }
+}
+
+#[test]
+fn misplaced_or_mixed_files_are_refused() {
+    // A full model in nocov/.
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "nocov", "model.onnx", &read(&tiny_v2(), "full", "model.onnx"));
+    let msg = load_error(tmp.path());
+    assert!(
+        msg.contains("nocov/model.onnx") && msg.contains("`mcdenoise.variant` is `full`, expected `nocov`"),
+        "{msg}"
+    );
+
+    // A contract-2 graph named diffuse.onnx.
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "full", "diffuse.onnx", &read(&tiny_v2(), "full", "model.onnx"));
+    write(tmp.path(), "full", "specular.onnx", &read(&tiny_models(), "full", "specular.onnx"));
+    let msg = load_error(tmp.path());
+    assert!(
+        msg.contains("full/diffuse.onnx") && msg.contains("is `2`, expected `1` (a contract-2 model is one file"),
+        "{msg}"
+    );
+
+    // Both layouts in one directory.
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "full", "model.onnx", &read(&tiny_v2(), "full", "model.onnx"));
+    write(tmp.path(), "full", "diffuse.onnx", &read(&tiny_models(), "full", "diffuse.onnx"));
+    assert!(load_error(tmp.path()).contains("holds both model.onnx"));
+
+    // A v1 pair whose components take different features.
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "full", "diffuse.onnx", &read(&tiny_models(), "full", "diffuse.onnx"));
+    write(
+        tmp.path(),
+        "full",
+        "specular.onnx",
+        &set_meta(&read(&tiny_models(), "nocov", "specular.onnx"), "mcdenoise.variant", "full"),
+    );
+    let msg = load_error(tmp.path());
+    assert!(msg.contains("diffuse.onnx takes the `full` features but specular.onnx the `nocov` ones"), "{msg}");
+
+    // A directory name that cannot be a variant.
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "my model", "model.onnx", &read(&tiny_v2(), "full", "model.onnx"));
+    assert!(load_error(tmp.path()).contains("`my model` is not a valid variant name"));
+}
