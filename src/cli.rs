@@ -10,6 +10,7 @@ use clap::Args;
 use ndarray::{Array0, Array3};
 use serde_json::json;
 
+use crate::config::FireflyArgs;
 use crate::engine::{self, preprocess, Engine, EngineConfig, Rect, Variant, EPS};
 use crate::frame::{self, Buffer, Frame, Limits, OutputLayer};
 use crate::metrics::Metrics;
@@ -72,6 +73,8 @@ pub struct RunArgs {
     pub layers: Vec<String>,
     #[arg(long, value_enum, default_value_t)]
     pub variant: VariantArg,
+    #[command(flatten)]
+    pub fireflies: FireflyArgs,
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_library: Option<PathBuf>,
@@ -91,6 +94,9 @@ pub struct PreprocessArgs {
     pub reference: Option<PathBuf>,
     #[arg(long, value_enum, default_value_t)]
     pub variant: VariantArg,
+    /// The inputs are those `mcdenoise run` gives the networks, fireflies handled alike.
+    #[command(flatten)]
+    pub fireflies: FireflyArgs,
     #[command(flatten)]
     pub frame: FrameArgs,
 }
@@ -161,7 +167,8 @@ pub fn run(args: RunArgs) -> Result<()> {
     }
     let decode_ms = ms(t);
 
-    let out = engine.denoise(&frame, args.variant.resolve(), &mut |p| {
+    let fireflies = args.fireflies.settings();
+    let out = engine.denoise_with(&frame, args.variant.resolve(), fireflies, &mut |p| {
         tracing::debug!(tile = p.tiles_done, of = p.tiles_total, "tile done");
         true
     })?;
@@ -200,9 +207,16 @@ pub fn run(args: RunArgs) -> Result<()> {
         "flops_per_pixel": flops,
         "sanitized": frame.sanitized,
         "missing_variances": frame.missing_variances,
+        "fireflies": {
+            "mode": fireflies.mode,
+            "strength": fireflies.strength,
+            "handled": out.fireflies.total(),
+            "by_component": out.fireflies,
+        },
         "timings_ms": {
             "load_models": load_ms,
             "decode": decode_ms,
+            "fireflies": out.timings.fireflies.as_secs_f64() * 1e3,
             "preprocess": out.timings.preprocess.as_secs_f64() * 1e3,
             "inference": out.timings.inference.as_secs_f64() * 1e3,
             "reconstruction": out.timings.reconstruction.as_secs_f64() * 1e3,
@@ -234,6 +248,10 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     };
     if variant == Variant::Nocov {
         frame.remove(Buffer::Covariance);
+    }
+    let (handled, report) = engine::handle_fireflies(&frame, args.fireflies.settings());
+    if let Some(handled) = handled {
+        frame = handled;
     }
     let (w, h) = (frame.width, frame.height);
     let stats = engine::FrameStats::of(&frame);
@@ -275,7 +293,14 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     }
     npz.finish()?;
     fs::rename(&tmp, &args.output).with_context(|| format!("cannot rename to {}", args.output.display()))?;
-    eprintln!("wrote {} ({}x{}, variant {})", args.output.display(), w, h, variant.name());
+    eprintln!(
+        "wrote {} ({}x{}, variant {}, {} firefly samples handled)",
+        args.output.display(),
+        w,
+        h,
+        variant.name(),
+        report.total()
+    );
     Ok(())
 }
 

@@ -1,12 +1,14 @@
 //! The denoising engine: preprocessing, tiled ONNX inference, kernel reconstruction and the
 //! inverse transforms. Synchronous and transport-free; the CLI and the daemon drive it.
 //!
-//! A frame is cut into square tiles. Each tile is preprocessed and run through both networks
+//! Before tiling, [`fireflies`] finds and clamps isolated outliers on the whole frame (its
+//! own stage, independent of the networks). A frame is cut into square tiles. Each tile is preprocessed and run through both networks
 //! together with a halo of context at least as wide as the networks' receptive radius (and
 //! the kernel radius), so the tiled result equals the whole-frame result while memory
 //! follows the tile size.
 
 pub mod contract;
+pub mod fireflies;
 pub mod model;
 pub mod preprocess;
 pub mod reconstruct;
@@ -18,6 +20,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use contract::{Component, Variant};
+pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, ModelPair};
 pub use preprocess::{FrameStats, Rect, EPS};
 
@@ -67,6 +70,9 @@ impl EngineConfig {
 /// Time spent per stage.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct StageTimings {
+    /// Firefly detection and clamping ([`fireflies`]).
+    #[serde(serialize_with = "as_ms")]
+    pub fireflies: Duration,
     #[serde(serialize_with = "as_ms")]
     pub preprocess: Duration,
     #[serde(serialize_with = "as_ms")]
@@ -96,6 +102,22 @@ pub struct Denoised {
     pub specular: [Plane; 3],
     pub tiles: usize,
     pub timings: StageTimings,
+    /// What the firefly handling did.
+    pub fireflies: FireflyReport,
+}
+
+/// Samples (pixel × component) the firefly handling clamped, per component.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct FireflyReport {
+    pub diffuse: u64,
+    pub specular: u64,
+}
+
+impl FireflyReport {
+    /// Samples handled, all components together.
+    pub fn total(&self) -> u64 {
+        self.diffuse + self.specular
+    }
 }
 
 /// Loaded models plus the tiling and threading settings.
@@ -159,24 +181,41 @@ impl Engine {
         Ok(())
     }
 
-    /// Denoises `frame` with `variant` (or the one [`Engine::select`] picks). `on_tile` is
-    /// called after each tile; returning `false` cancels between tiles.
+    /// Denoises `frame` with `variant` (or the one [`Engine::select`] picks) and the default
+    /// firefly handling (`auto`). `on_tile` is called after each tile; returning `false`
+    /// cancels between tiles.
     pub fn denoise(
         &mut self,
         frame: &Frame,
         variant: Option<Variant>,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError> {
+        self.denoise_with(frame, variant, Fireflies::default(), on_tile)
+    }
+
+    /// [`Engine::denoise`] with the given firefly handling.
+    pub fn denoise_with(
+        &mut self,
+        frame: &Frame,
+        variant: Option<Variant>,
+        fireflies: Fireflies,
+        on_tile: &mut dyn FnMut(Progress) -> bool,
+    ) -> Result<Denoised, EngineError> {
         let variant = match variant {
             Some(v) => v,
             None => self.select(frame)?,
         };
+        let mut timings = StageTimings::default();
+        let t = Instant::now();
+        let (handled, report) = self.pool.install(|| handle_fireflies(frame, fireflies));
+        let frame = handled.as_ref().unwrap_or(frame);
+        timings.fireflies = t.elapsed();
+
         let (pair, halo) = pair_for(&mut self.pairs, variant, frame)?;
         let stats = FrameStats::of(frame);
         let tiles = tile_grid(frame.width, frame.height, self.tile);
         let (w, h) = (frame.width, frame.height);
         let mut filtered = [vec![0f32; 3 * w * h], vec![0f32; 3 * w * h]];
-        let mut timings = StageTimings::default();
 
         for (index, core) in tiles.iter().enumerate() {
             let region = expand(*core, halo, w, h);
@@ -208,18 +247,30 @@ impl Engine {
             }
         }
 
+        // The inverse transforms, saturated: a finite input never gives a non-finite output
+        // (a filtered diffuse value times an albedo near the float maximum would overflow).
         let t = Instant::now();
         let n = w * h;
         let albedo = frame.planes(Buffer::Albedo);
         let diffuse: [Plane; 3] = std::array::from_fn(|c| {
-            filtered[0][c * n..][..n].iter().zip(&albedo[c]).map(|(d, a)| d * (a.max(0.0) + EPS)).collect()
+            filtered[0][c * n..][..n].iter().zip(&albedo[c]).map(|(d, a)| saturate(d * (a.max(0.0) + EPS))).collect()
         });
         let specular: [Plane; 3] =
-            std::array::from_fn(|c| filtered[1][c * n..][..n].iter().map(|s| s.exp_m1()).collect());
+            std::array::from_fn(|c| filtered[1][c * n..][..n].iter().map(|s| saturate(s.exp_m1())).collect());
         let color: [Plane; 3] =
-            std::array::from_fn(|c| diffuse[c].iter().zip(&specular[c]).map(|(d, s)| d + s).collect());
+            std::array::from_fn(|c| diffuse[c].iter().zip(&specular[c]).map(|(d, s)| saturate(d + s)).collect());
         timings.reconstruction += t.elapsed();
-        Ok(Denoised { width: w, height: h, variant, color, diffuse, specular, tiles: tiles.len(), timings })
+        Ok(Denoised {
+            width: w,
+            height: h,
+            variant,
+            color,
+            diffuse,
+            specular,
+            tiles: tiles.len(),
+            timings,
+            fireflies: report,
+        })
     }
 
     /// Time spent in ONNX Runtime alone on the regions [`Engine::denoise`] would run for
@@ -244,6 +295,43 @@ impl Engine {
         }
         Ok(total)
     }
+}
+
+/// `x` with ±∞ replaced by ±`f32::MAX` and NaN by 0.
+fn saturate(x: f32) -> f32 {
+    preprocess::saturate(x, f32::MAX)
+}
+
+/// Runs the firefly handling on every color buffer the networks read (diffuse, divided by
+/// albedo as the network sees it, and specular). Returns the changed frame (`None` when
+/// nothing was changed: the frame is only copied when it has outliers) and the counts.
+pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, FireflyReport) {
+    use fireflies::Layer;
+    let mut report = FireflyReport::default();
+    if !settings.enabled() {
+        return (None, report);
+    }
+    let (w, h) = (frame.width, frame.height);
+    let albedo = frame.planes(Buffer::Albedo);
+    let albedo = [&albedo[0][..], &albedo[1][..], &albedo[2][..]];
+    let layer = |color: Buffer, variance: Buffer, albedo: Option<[&'_ [f32]; 3]>| -> Vec<fireflies::Fix> {
+        let c = frame.planes(color);
+        // Variances filled in as zeros for a missing buffer say nothing.
+        let known = frame.has(variance) && !frame.missing_variances.iter().any(|m| m == variance.name());
+        let layer = Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| frame.planes(variance)), albedo };
+        fireflies::detect(layer, w, h, settings)
+    };
+    let diffuse = layer(Buffer::Diffuse, Buffer::DiffuseVariance, Some(albedo));
+    let specular = layer(Buffer::Specular, Buffer::SpecularVariance, None);
+    report.diffuse = diffuse.len() as u64;
+    report.specular = specular.len() as u64;
+    if report.total() == 0 {
+        return (None, report);
+    }
+    let mut out = frame.clone();
+    fireflies::apply(&diffuse, out.planes_mut(Buffer::Diffuse));
+    fireflies::apply(&specular, out.planes_mut(Buffer::Specular));
+    (Some(out), report)
 }
 
 /// The loaded pair of `variant`, checked against the frame's channels, and the halo its
