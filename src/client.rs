@@ -502,6 +502,7 @@ fn options_pb(args: &SubmitArgs) -> Result<pb::JobOptions> {
         label: args.label.clone().unwrap_or_default(),
         variant: variant as i32,
         deadline_seconds: args.deadline_seconds.unwrap_or(0),
+        ..Default::default()
     })
 }
 

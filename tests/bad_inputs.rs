@@ -853,6 +853,7 @@ fn grpc_message(m: &GrpcMessage) -> pb::SubmitJobRequest {
                 label: o.label.clone(),
                 variant: o.variant,
                 deadline_seconds: o.deadline_seconds,
+                ..Default::default()
             }),
             frame_size: frame_size.bytes(),
             reference_size: reference_size.bytes(),
