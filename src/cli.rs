@@ -10,6 +10,7 @@ use clap::Args;
 use ndarray::{Array0, Array3};
 use serde_json::json;
 
+use crate::config::FireflyArgs;
 use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
 use crate::frame::{self, Buffer, Frame, Limits, OutputLayer};
 use crate::metrics::Metrics;
@@ -92,6 +93,8 @@ pub struct RunArgs {
     /// Model variant: `auto`, or the name of a loaded variant (`full`, `nocov`, `lin2020`, ...).
     #[arg(long, default_value_t)]
     pub variant: VariantArg,
+    #[command(flatten)]
+    pub fireflies: FireflyArgs,
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_library: Option<PathBuf>,
@@ -112,6 +115,9 @@ pub struct PreprocessArgs {
     /// Feature set: `auto` (`full` if the frame has covariance, else `nocov`), `full` or `nocov`.
     #[arg(long, default_value_t)]
     pub variant: VariantArg,
+    /// The inputs are those `mcdenoise run` gives the networks, fireflies handled alike.
+    #[command(flatten)]
+    pub fireflies: FireflyArgs,
     #[command(flatten)]
     pub frame: FrameArgs,
 }
@@ -183,7 +189,8 @@ pub fn run(args: RunArgs) -> Result<()> {
     }
     let decode_ms = ms(t);
 
-    let out = engine.denoise(&frame, args.variant.resolve(), &mut |p| {
+    let fireflies = args.fireflies.settings();
+    let out = engine.denoise_with(&frame, args.variant.resolve(), fireflies, &mut |p| {
         tracing::debug!(tile = p.tiles_done, of = p.tiles_total, "tile done");
         true
     })?;
@@ -225,9 +232,16 @@ pub fn run(args: RunArgs) -> Result<()> {
         "flops_per_pixel": flops,
         "sanitized": frame.sanitized,
         "missing_variances": frame.missing_variances,
+        "fireflies": {
+            "mode": fireflies.mode,
+            "strength": fireflies.strength,
+            "handled": out.fireflies.total(),
+            "by_component": out.fireflies,
+        },
         "timings_ms": {
             "load_models": load_ms,
             "decode": decode_ms,
+            "fireflies": out.timings.fireflies.as_secs_f64() * 1e3,
             "preprocess": out.timings.preprocess.as_secs_f64() * 1e3,
             "inference": out.timings.inference.as_secs_f64() * 1e3,
             "reconstruction": out.timings.reconstruction.as_secs_f64() * 1e3,
@@ -261,6 +275,10 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     };
     if set == FeatureSet::Nocov {
         frame.remove(Buffer::Covariance);
+    }
+    let (handled, report) = engine::handle_fireflies(&frame, args.fireflies.settings());
+    if let Some(handled) = handled {
+        frame = handled;
     }
     let (w, h) = (frame.width, frame.height);
     let stats = engine::FrameStats::of(&frame);
@@ -302,7 +320,14 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     }
     npz.finish()?;
     fs::rename(&tmp, &args.output).with_context(|| format!("cannot rename to {}", args.output.display()))?;
-    eprintln!("wrote {} ({}x{}, variant {})", args.output.display(), w, h, set.name());
+    eprintln!(
+        "wrote {} ({}x{}, variant {}, {} firefly samples handled)",
+        args.output.display(),
+        w,
+        h,
+        set.name(),
+        report.total()
+    );
     Ok(())
 }
 

@@ -503,6 +503,7 @@ fn options_pb(args: &SubmitArgs) -> Result<pb::JobOptions> {
         variant: variant as i32,
         deadline_seconds: args.deadline_seconds.unwrap_or(0),
         variant_name: variant_name.to_string(),
+        ..Default::default()
     })
 }
 

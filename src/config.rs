@@ -13,11 +13,41 @@ use std::time::Duration;
 use anyhow::{bail, Context};
 use clap::{Args, Command};
 
+use crate::engine::{Fireflies, FireflyMode};
 use crate::frame::Limits;
 use crate::telemetry::LogFormat;
 
 fn parse_duration(s: &str) -> Result<Duration, String> {
     humantime::parse_duration(s).map_err(|e| format!("{e} (examples: 30s, 5m, 24h)"))
+}
+
+fn parse_firefly_mode(s: &str) -> Result<FireflyMode, String> {
+    FireflyMode::parse(s).ok_or_else(|| format!("unknown firefly mode `{s}` (expected auto or off)"))
+}
+
+fn parse_firefly_strength(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|e| format!("{e} (a number, e.g. 1 or 0.5)"))?;
+    Fireflies { mode: FireflyMode::Auto, strength: v }.validate().map(|f| f.strength)
+}
+
+/// Firefly handling (docs/fireflies.md), shared by `run`, `preprocess` and `serve` (where
+/// it is the default of jobs that do not set their own).
+#[derive(Args, Debug, Clone, Copy)]
+pub struct FireflyArgs {
+    /// Outlier handling before the networks: `auto` clamps isolated, very bright samples
+    /// (fireflies) to a bound from their neighbourhood; `off` leaves the frame as it is.
+    #[arg(long, env = "MCDENOISE_FIREFLIES", default_value = "auto", value_parser = parse_firefly_mode)]
+    pub fireflies: FireflyMode,
+    /// Strength of the firefly handling, 0.1 to 10: the bound above the neighbourhood's
+    /// median (in log units) is divided by it, so 2 clamps more and 0.5 less.
+    #[arg(long, env = "MCDENOISE_FIREFLY_STRENGTH", default_value = "1", value_parser = parse_firefly_strength)]
+    pub firefly_strength: f32,
+}
+
+impl FireflyArgs {
+    pub fn settings(&self) -> Fireflies {
+        Fireflies { mode: self.fireflies, strength: self.firefly_strength }
+    }
 }
 
 /// A bearer token; `Debug` never prints it.
@@ -89,6 +119,9 @@ pub struct ServeArgs {
     /// Tile side for contract-v2 (multi-scale) models, whose halo is wider (0: whole frame).
     #[arg(long, env = "MCDENOISE_TILE_V2", default_value_t = crate::engine::DEFAULT_TILE_V2, help_heading = "Models and workers")]
     pub tile_v2: usize,
+    /// Default firefly handling of jobs that do not set `fireflies` / `firefly_strength`.
+    #[command(flatten)]
+    pub fireflies: FireflyArgs,
 
     // --- Queue and limits --------------------------------------------------------------
     /// Largest number of queued jobs (running ones excluded); beyond it submissions get
@@ -206,6 +239,7 @@ impl ServeArgs {
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,
             "tile_v2": self.tile_v2,
+            "fireflies": self.fireflies.settings(),
             "queue_capacity": self.queue_capacity,
             "job_deadline": humantime::format_duration(self.job_deadline).to_string(),
             "result_ttl": humantime::format_duration(self.result_ttl).to_string(),
@@ -310,6 +344,23 @@ mod tests {
         assert_eq!(a.queue_capacity, 256);
         assert_eq!(a.result_ttl, Duration::from_secs(86400));
         assert!(a.auth_tokens.is_empty());
+        assert_eq!(a.fireflies.settings(), Fireflies::default());
+    }
+
+    #[test]
+    fn fireflies_come_from_flags_and_the_config_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("serve.toml");
+        std::fs::write(&path, "fireflies = \"off\"\nfirefly-strength = 2.5\n").unwrap();
+        let p = path.to_str().unwrap();
+        let a = parse_serve_args(["serve", "--config", p]).unwrap();
+        assert_eq!(a.fireflies.settings(), Fireflies { mode: FireflyMode::Off, strength: 2.5 });
+        let a = parse_serve_args(["serve", "--config", p, "--fireflies", "auto"]).unwrap();
+        assert_eq!(a.fireflies.fireflies, FireflyMode::Auto);
+        let err = parse_serve_args(["serve", "--firefly-strength", "0"]).unwrap_err();
+        assert!(err.to_string().contains("0.1..=10"), "{err}");
+        let err = parse_serve_args(["serve", "--fireflies", "maybe"]).unwrap_err();
+        assert!(err.to_string().contains("expected auto or off"), "{err}");
     }
 
     #[test]

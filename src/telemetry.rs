@@ -76,6 +76,7 @@ pub struct Telemetry {
     queue_capacity: Gauge,
     tiles: Counter,
     sanitized: Counter,
+    fireflies: Counter,
     pixels: Counter,
     last_scrape_len: AtomicU64,
 }
@@ -114,6 +115,7 @@ impl Telemetry {
             queue_capacity: Gauge::default(),
             tiles: Counter::default(),
             sanitized: Counter::default(),
+            fireflies: Counter::default(),
             pixels: Counter::default(),
             last_scrape_len: AtomicU64::new(0),
         };
@@ -152,6 +154,11 @@ impl Telemetry {
         registry.register("tiles", "Tiles denoised", t.tiles.clone());
         registry.register("pixels", "Pixels of succeeded jobs", t.pixels.clone());
         registry.register("sanitized_samples", "Non-finite input samples replaced by 0", t.sanitized.clone());
+        registry.register(
+            "firefly_samples",
+            "Input samples (pixel x component) clamped by the firefly handling",
+            t.fireflies.clone(),
+        );
 
         for p in Priority::ALL {
             t.queue_depth.get_or_create(&labels(&[("priority", p.name())])).set(0);
@@ -258,5 +265,9 @@ impl Telemetry {
     pub fn job_output(&self, pixels: u64, sanitized: u64) {
         self.pixels.inc_by(pixels);
         self.sanitized.inc_by(sanitized);
+    }
+
+    pub fn fireflies_handled(&self, samples: u64) {
+        self.fireflies.inc_by(samples);
     }
 }

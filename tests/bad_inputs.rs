@@ -855,6 +855,7 @@ fn grpc_message(m: &GrpcMessage) -> pb::SubmitJobRequest {
                 variant: o.variant,
                 deadline_seconds: o.deadline_seconds,
                 variant_name: o.variant_name.clone(),
+                ..Default::default()
             }),
             frame_size: frame_size.bytes(),
             reference_size: reference_size.bytes(),

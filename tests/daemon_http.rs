@@ -377,3 +377,64 @@ async fn metrics_models_and_openapi_are_served_from_the_start() {
     assert!(text.contains("mcdenoise_jobs_submitted_total{transport=\"http\"} 1"), "{text}");
     d.stop().await;
 }
+
+/// Firefly handling per job: the handled-sample count in the job's JSON (and its gRPC form)
+/// and in `mcdenoise_firefly_samples_total`; `off` per job; a bad strength refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn fireflies_are_counted_per_job_and_on_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let (w, h) = (40, 32);
+    // Three isolated outliers in the diffuse buffer, with variance raised to match.
+    let mut planes = common::named_planes(w, h, false);
+    let outliers = [5 * w + 7, 16 * w + 20, 25 * w + 33];
+    for (name, plane) in planes.iter_mut() {
+        for &i in &outliers {
+            if name.starts_with("diffuse.") {
+                plane[i] = 5e3;
+            } else if name == "diffuseVariance.Z" {
+                plane[i] = 2.5e7;
+            }
+        }
+    }
+    let exr = common::exr_single(w, h, &planes, common::Sample::F32);
+
+    let auto = d.submit_ok(&exr, "fireflies=auto&firefly_strength=1.5").await;
+    let off = d.submit_ok(&exr, "fireflies=off").await;
+    let default = d.submit_ok(&exr, "").await;
+    let auto = d.wait_state(&auto, "succeeded").await;
+    let off = d.wait_state(&off, "succeeded").await;
+    let default = d.wait_state(&default, "succeeded").await;
+    assert_eq!(auto["requested_fireflies"], "auto");
+    assert_eq!(auto["fireflies"]["mode"], "auto");
+    assert_eq!(auto["fireflies"]["strength"], 1.5);
+    assert_eq!(auto["fireflies"]["handled"], 3, "{auto}");
+    assert_eq!(auto["fireflies"]["by_component"]["diffuse"], 3);
+    assert_eq!(auto["fireflies"]["by_component"]["specular"], 0);
+    assert_eq!(off["fireflies"]["mode"], "off");
+    assert_eq!(off["fireflies"]["handled"], 0);
+    assert_eq!(default["requested_fireflies"], serde_json::Value::Null);
+    assert_eq!(
+        (default["fireflies"]["mode"].as_str(), default["fireflies"]["strength"].as_f64()),
+        (Some("auto"), Some(1.0))
+    );
+    assert_eq!(default["fireflies"]["handled"], 3);
+
+    let (_, metrics) = d.get_json("/metrics").await;
+    let metrics = metrics.as_str().unwrap().to_string();
+    assert!(metrics.contains("mcdenoise_firefly_samples_total 6\n"), "{metrics}");
+
+    // The gRPC form of the same job.
+    let id = auto["id"].as_str().unwrap().to_string();
+    let mut client = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let job = client.get_job(mcdenoise::grpc::pb::GetJobRequest { id }).await.unwrap().into_inner();
+    let pb = job.fireflies.unwrap();
+    assert_eq!((pb.mode.as_str(), pb.strength, pb.handled, pb.diffuse), ("auto", 1.5, 3, 3));
+
+    for bad in ["firefly_strength=50", "firefly_strength=0", "fireflies=sometimes"] {
+        let (status, err) = d.submit(&exr, bad, &[]).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{bad}: {err}");
+    }
+    d.stop().await;
+}

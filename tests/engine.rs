@@ -245,3 +245,88 @@ fn models_report_their_contract_fields() {
     assert!(e.flops_per_pixel(Variant::Full).unwrap() > e.flops_per_pixel(Variant::Nocov).unwrap());
     assert!(Buffer::ALL.len() == 13);
 }
+
+/// Finite in, finite out at every magnitude: a seeded sweep sets one pixel, then a whole
+/// plane, of each channel of each buffer to magnitudes from 1e-30 to the float maximum
+/// (the ends, every decade between, and seeded log-uniform draws; either sign), and runs the
+/// engine (both variants, tiled, fireflies `auto` and `off`): every output pixel must be
+/// finite.
+#[test]
+fn every_magnitude_in_every_channel_gives_a_finite_output() {
+    use mcdenoise::engine::Fireflies;
+    let (w, h) = (20, 18);
+    let mut engine = engine(8);
+    let base = synthetic_planes_named(w, h);
+    let mut seed = 0x5EED_u64;
+    let mut next = move || {
+        seed = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = seed;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    };
+    let mut magnitudes: Vec<f32> = vec![1e-30, f32::MAX, 3.4e38, 1e38];
+    magnitudes.extend((-30..=38).step_by(4).map(|e| 10f32.powi(e)));
+    for _ in 0..8 {
+        let u = (next() >> 11) as f64 / (1u64 << 53) as f64;
+        magnitudes.push(10f64.powf(-30.0 + u * (38.5 - -30.0)).min(f32::MAX as f64) as f32);
+    }
+    let mut runs = 0;
+    for (index, (name, _)) in base.iter().enumerate() {
+        for (k, &m) in magnitudes.iter().enumerate() {
+            let value = if k % 3 == 2 { -m } else { m };
+            for whole_plane in [false, true] {
+                let mut planes = base.clone();
+                let pixel = (next() % (w * h) as u64) as usize;
+                if whole_plane {
+                    planes[index].1.fill(value);
+                } else {
+                    planes[index].1[pixel] = value;
+                }
+                let frame = Frame::from_planes(w, h, planes, REQUIRED).unwrap();
+                for variant in [Variant::Full, Variant::Nocov] {
+                    for fireflies in [Fireflies::default(), Fireflies::OFF] {
+                        if fireflies == Fireflies::OFF && whole_plane {
+                            continue;
+                        }
+                        let out = engine.denoise_with(&frame, Some(variant), fireflies, &mut |_| true).unwrap();
+                        runs += 1;
+                        for (layer, planes) in
+                            [("color", &out.color), ("diffuse", &out.diffuse), ("specular", &out.specular)]
+                        {
+                            for (c, p) in planes.iter().enumerate() {
+                                if let Some(bad) = p.iter().position(|v| !v.is_finite()) {
+                                    panic!(
+                                        "{name} = {value:e} ({}) with {variant:?}, fireflies {:?}: {layer}[{c}] \
+                                         pixel {bad} is {}",
+                                        if whole_plane { "whole plane" } else { "one pixel" },
+                                        fireflies.mode,
+                                        p[bad]
+                                    );
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    assert!(runs > 1000, "{runs} runs");
+}
+
+/// The synthetic frame's planes with every variance as three channels, so that the sweep
+/// reaches each channel of each buffer.
+fn synthetic_planes_named(w: usize, h: usize) -> Vec<(String, Vec<f32>)> {
+    let mut planes = Vec::new();
+    for (name, plane) in mcdenoise::engine::synthetic_planes(w, h, true) {
+        match name.strip_suffix(".Z").filter(|n| n.ends_with("Variance") && !n.starts_with("depth")) {
+            Some(base) if !base.starts_with("covariance") => {
+                for ch in ["R", "G", "B"] {
+                    planes.push((format!("{base}.{ch}"), plane.clone()));
+                }
+            }
+            _ => planes.push((name, plane)),
+        }
+    }
+    planes
+}

@@ -1,7 +1,9 @@
 //! The denoising engine: preprocessing, tiled ONNX inference, kernel reconstruction and the
 //! inverse transforms. Synchronous and transport-free; the CLI and the daemon drive it.
 //!
-//! A frame is cut into square tiles. Each tile is preprocessed and run through the networks
+//! Before tiling, [`fireflies`] finds and clamps isolated outliers on the whole frame (its
+//! own stage, independent of the networks). A frame is cut into square tiles. Each tile is
+//! preprocessed and run through the networks
 //! together with a halo of context at least as wide as the networks' receptive radius (and
 //! what the reconstruction reads), so the tiled result equals the whole-frame result while
 //! memory follows the tile size. A variant is either two contract-v1 graphs (one per
@@ -10,6 +12,7 @@
 //! its pooling grid and regions padded to it, so that tiles see the frame's grid.
 
 pub mod contract;
+pub mod fireflies;
 pub mod model;
 pub mod multiscale;
 pub mod preprocess;
@@ -23,6 +26,7 @@ use serde::Serialize;
 
 pub use contract::{Component, FeatureSet, Variant};
 pub use model::{ModelInfo, VariantModel};
+pub use fireflies::{Fireflies, FireflyMode};
 pub use preprocess::{FrameStats, Rect, EPS};
 
 use crate::frame::{Buffer, Frame, Plane};
@@ -82,6 +86,9 @@ pub const DEFAULT_TILE_V2: usize = 768;
 /// Time spent per stage.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
 pub struct StageTimings {
+    /// Firefly detection and clamping ([`fireflies`]).
+    #[serde(serialize_with = "as_ms")]
+    pub fireflies: Duration,
     #[serde(serialize_with = "as_ms")]
     pub preprocess: Duration,
     #[serde(serialize_with = "as_ms")]
@@ -111,6 +118,22 @@ pub struct Denoised {
     pub specular: [Plane; 3],
     pub tiles: usize,
     pub timings: StageTimings,
+    /// What the firefly handling did.
+    pub fireflies: FireflyReport,
+}
+
+/// Samples (pixel × component) the firefly handling clamped, per component.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct FireflyReport {
+    pub diffuse: u64,
+    pub specular: u64,
+}
+
+impl FireflyReport {
+    /// Samples handled, all components together.
+    pub fn total(&self) -> u64 {
+        self.diffuse + self.specular
+    }
 }
 
 /// Loaded models plus the tiling and threading settings.
@@ -184,24 +207,41 @@ impl Engine {
         Ok(())
     }
 
-    /// Denoises `frame` with `variant` (or the one [`Engine::select`] picks). `on_tile` is
-    /// called after each tile; returning `false` cancels between tiles.
+    /// Denoises `frame` with `variant` (or the one [`Engine::select`] picks) and the default
+    /// firefly handling (`auto`). `on_tile` is called after each tile; returning `false`
+    /// cancels between tiles.
     pub fn denoise(
         &mut self,
         frame: &Frame,
         variant: Option<Variant>,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError> {
+        self.denoise_with(frame, variant, Fireflies::default(), on_tile)
+    }
+
+    /// [`Engine::denoise`] with the given firefly handling.
+    pub fn denoise_with(
+        &mut self,
+        frame: &Frame,
+        variant: Option<Variant>,
+        fireflies: Fireflies,
+        on_tile: &mut dyn FnMut(Progress) -> bool,
+    ) -> Result<Denoised, EngineError> {
         let variant = match variant {
             Some(v) => v,
             None => self.select(frame)?,
         };
+        let mut timings = StageTimings::default();
+        let t = Instant::now();
+        let (handled, report) = self.pool.install(|| handle_fireflies(frame, fireflies));
+        let frame = handled.as_ref().unwrap_or(frame);
+        timings.fireflies = t.elapsed();
+
         let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;
         let stats = FrameStats::of(frame);
         let tiles = tile_grid(frame.width, frame.height, plan.tile);
         let (w, h) = (frame.width, frame.height);
         let mut filtered = [vec![0f32; 3 * w * h], vec![0f32; 3 * w * h]];
-        let mut timings = StageTimings::default();
 
         for (index, core) in tiles.iter().enumerate() {
             let region = expand(*core, plan.halo, w, h);
@@ -214,18 +254,30 @@ impl Engine {
             }
         }
 
+        // The inverse transforms, saturated: a finite input never gives a non-finite output
+        // (a filtered diffuse value times an albedo near the float maximum would overflow).
         let t = Instant::now();
         let n = w * h;
         let albedo = frame.planes(Buffer::Albedo);
         let diffuse: [Plane; 3] = std::array::from_fn(|c| {
-            filtered[0][c * n..][..n].iter().zip(&albedo[c]).map(|(d, a)| d * (a.max(0.0) + EPS)).collect()
+            filtered[0][c * n..][..n].iter().zip(&albedo[c]).map(|(d, a)| saturate(d * (a.max(0.0) + EPS))).collect()
         });
         let specular: [Plane; 3] =
-            std::array::from_fn(|c| filtered[1][c * n..][..n].iter().map(|s| s.exp_m1()).collect());
+            std::array::from_fn(|c| filtered[1][c * n..][..n].iter().map(|s| saturate(s.exp_m1())).collect());
         let color: [Plane; 3] =
-            std::array::from_fn(|c| diffuse[c].iter().zip(&specular[c]).map(|(d, s)| d + s).collect());
+            std::array::from_fn(|c| diffuse[c].iter().zip(&specular[c]).map(|(d, s)| saturate(d + s)).collect());
         timings.reconstruction += t.elapsed();
-        Ok(Denoised { width: w, height: h, variant, color, diffuse, specular, tiles: tiles.len(), timings })
+        Ok(Denoised {
+            width: w,
+            height: h,
+            variant,
+            color,
+            diffuse,
+            specular,
+            tiles: tiles.len(),
+            timings,
+            fireflies: report,
+        })
     }
 
     /// Time spent in ONNX Runtime alone on the regions [`Engine::denoise`] would run for
@@ -241,6 +293,43 @@ impl Engine {
         }
         Ok(timings.inference)
     }
+}
+
+/// `x` with ±∞ replaced by ±`f32::MAX` and NaN by 0.
+fn saturate(x: f32) -> f32 {
+    preprocess::saturate(x, f32::MAX)
+}
+
+/// Runs the firefly handling on every color buffer the networks read (diffuse, divided by
+/// albedo as the network sees it, and specular). Returns the changed frame (`None` when
+/// nothing was changed: the frame is only copied when it has outliers) and the counts.
+pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, FireflyReport) {
+    use fireflies::Layer;
+    let mut report = FireflyReport::default();
+    if !settings.enabled() {
+        return (None, report);
+    }
+    let (w, h) = (frame.width, frame.height);
+    let albedo = frame.planes(Buffer::Albedo);
+    let albedo = [&albedo[0][..], &albedo[1][..], &albedo[2][..]];
+    let layer = |color: Buffer, variance: Buffer, albedo: Option<[&'_ [f32]; 3]>| -> Vec<fireflies::Fix> {
+        let c = frame.planes(color);
+        // Variances filled in as zeros for a missing buffer say nothing.
+        let known = frame.has(variance) && !frame.missing_variances.iter().any(|m| m == variance.name());
+        let layer = Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| frame.planes(variance)), albedo };
+        fireflies::detect(layer, w, h, settings)
+    };
+    let diffuse = layer(Buffer::Diffuse, Buffer::DiffuseVariance, Some(albedo));
+    let specular = layer(Buffer::Specular, Buffer::SpecularVariance, None);
+    report.diffuse = diffuse.len() as u64;
+    report.specular = specular.len() as u64;
+    if report.total() == 0 {
+        return (None, report);
+    }
+    let mut out = frame.clone();
+    fireflies::apply(&diffuse, out.planes_mut(Buffer::Diffuse));
+    fireflies::apply(&specular, out.planes_mut(Buffer::Specular));
+    (Some(out), report)
 }
 
 /// The loaded model of `variant`, checked against the frame's channels, and its tiling for

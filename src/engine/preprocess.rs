@@ -14,6 +14,28 @@ use crate::frame::{Buffer, Frame};
 /// Added to albedo before dividing the diffuse color by it (KPCN's value).
 pub const EPS: f32 = 0.00316;
 
+/// Largest magnitude of a network input. Inputs are saturated to it, so that a sample near
+/// the float maximum (divided by a small albedo, or summed into a luminance) cannot overflow
+/// into infinities and NaNs: gradients of saturated values stay finite (at most twice
+/// this), and so do the networks' activations (ReLU networks scale about linearly with
+/// their inputs) and the kernel sums of the reconstruction (at most 441 times this). Far
+/// above any rendered radiance: the transforms of ordinary frames never reach it.
+pub const INPUT_LIMIT: f32 = 1e20;
+
+/// `x` clamped to `[-limit, limit]` (infinities included); NaN becomes 0.
+pub fn saturate(x: f32, limit: f32) -> f32 {
+    if x.is_nan() {
+        0.0
+    } else {
+        x.clamp(-limit, limit)
+    }
+}
+
+/// [`saturate`] to [`INPUT_LIMIT`].
+fn bounded(x: f32) -> f32 {
+    saturate(x, INPUT_LIMIT)
+}
+
 /// Rec. 709 luminance, used to reduce three-channel variances to one.
 pub fn luminance(r: f32, g: f32, b: f32) -> f32 {
     0.2126 * r + 0.7152 * g + 0.0722 * b
@@ -96,15 +118,16 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
             with_gradients(
                 frame,
                 rect,
-                |i| d[i].max(0.0) / (a[i].max(0.0) + EPS),
+                |i| bounded(d[i].max(0.0) / (a[i].max(0.0) + EPS)),
                 &mut base[c * n..][..n],
                 &mut gx[c * n..][..n],
                 &mut gy[c * n..][..n],
             );
         }
         per_pixel(frame, rect, var, |i| {
-            let v = |c: usize| frame.plane(Buffer::DiffuseVariance, c)[i] / (albedo[c][i].max(0.0) + EPS).powi(2);
-            luminance(v(0), v(1), v(2))
+            let v =
+                |c: usize| bounded(frame.plane(Buffer::DiffuseVariance, c)[i] / (albedo[c][i].max(0.0) + EPS).powi(2));
+            bounded(luminance(v(0), v(1), v(2)))
         });
     }
     // Specular color: ln(1 + s); variance scaled by 1 / (1 + s)² (delta method).
@@ -123,8 +146,8 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
             );
         }
         per_pixel(frame, rect, var, |i| {
-            let v = |c: usize| frame.plane(Buffer::SpecularVariance, c)[i] / (1.0 + s[c][i].max(0.0)).powi(2);
-            luminance(v(0), v(1), v(2))
+            let v = |c: usize| bounded(frame.plane(Buffer::SpecularVariance, c)[i] / (1.0 + s[c][i].max(0.0)).powi(2));
+            bounded(luminance(v(0), v(1), v(2)))
         });
     }
     // Features: normal (3), albedo (3), depth, [covariance]; their variances; gx; gy.
@@ -142,10 +165,10 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
             k += 1;
         };
         for plane in normal {
-            emit(&|i| plane[i]);
+            emit(&|i| bounded(plane[i]));
         }
         for plane in albedo {
-            emit(&|i| plane[i]);
+            emit(&|i| bounded(plane[i]));
         }
         emit(&|i| scaled(depth[i], stats.depth_max));
         if set.uses_covariance() {
@@ -163,8 +186,8 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
         }
         for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {
             per_pixel(frame, rect, &mut vars[j * n..][..n], |i| {
-                let v = |c: usize| frame.plane(buffer, c)[i];
-                luminance(v(0), v(1), v(2)) * scale
+                let v = |c: usize| bounded(frame.plane(buffer, c)[i]);
+                bounded(luminance(v(0), v(1), v(2)) * scale)
             });
         }
     }

@@ -174,6 +174,16 @@ impl Frame {
         &planes[c.min(planes.len() - 1)]
     }
 
+    /// All planes of a buffer, to change them in place (e.g. the engine's firefly handling).
+    ///
+    /// # Panics
+    /// If the buffer is absent.
+    pub fn planes_mut(&mut self, buffer: Buffer) -> &mut [Plane] {
+        self.buffers[buffer as usize]
+            .as_deref_mut()
+            .unwrap_or_else(|| panic!("buffer {} is absent; check Frame::has first", buffer.name()))
+    }
+
     /// Drops a buffer (e.g. covariance, to run the no-covariance model on a full frame).
     pub fn remove(&mut self, buffer: Buffer) {
         self.buffers[buffer as usize] = None;

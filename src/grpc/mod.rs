@@ -11,7 +11,7 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::auth::{ClientId, Tokens};
-use crate::engine::Variant;
+use crate::engine::{FireflyMode, Variant};
 use crate::error::Error;
 use crate::jobs::{
     Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, Layer, ListFilter, Phase, Priority, UploadPart,
@@ -126,6 +126,14 @@ pub fn options_from_pb(o: Option<pb::JobOptions>) -> Result<JobOptions, Status> 
         label: Some(o.label).filter(|s| !s.is_empty()),
         variant,
         deadline_seconds: Some(o.deadline_seconds).filter(|s| *s > 0),
+        fireflies: match pb::FireflyMode::try_from(o.fireflies)
+            .map_err(|_| invalid(format!("unknown fireflies mode {}", o.fireflies)))?
+        {
+            pb::FireflyMode::Unspecified => None,
+            pb::FireflyMode::Auto => Some(FireflyMode::Auto),
+            pb::FireflyMode::Off => Some(FireflyMode::Off),
+        },
+        firefly_strength: Some(o.firefly_strength).filter(|s| *s != 0.0),
     })
 }
 
@@ -151,6 +159,13 @@ pub fn job_pb(s: &JobStatus) -> pb::Job {
         }),
         error: r.error.as_ref().map(|e| pb::JobError { code: e.code.name().to_string(), message: e.message.clone() }),
         missing_variances: r.missing_variances.clone(),
+        fireflies: r.fireflies.map(|f| pb::Fireflies {
+            mode: f.mode.name().to_string(),
+            strength: f.strength,
+            handled: f.handled,
+            diffuse: f.by_component.diffuse,
+            specular: f.by_component.specular,
+        }),
         metrics: r.metrics.map(|m| {
             let q = |q: crate::jobs::QualityMetrics| pb::QualityMetrics {
                 relmse: q.relmse,

@@ -28,7 +28,7 @@ use tokio_util::sync::CancellationToken;
 pub use error::ApiError;
 
 use crate::auth::{ClientId, Tokens};
-use crate::engine::Variant;
+use crate::engine::{FireflyMode, Variant};
 use crate::error::Error;
 use crate::jobs::{
     rfc3339, Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, Layer, ListFilter, Phase, Priority,
@@ -213,6 +213,9 @@ pub fn job_json(s: &JobStatus) -> Value {
         "layers": r.options.layers,
         "requested_variant": r.options.variant,
         "variant": r.variant,
+        "requested_fireflies": r.options.fireflies,
+        "requested_firefly_strength": r.options.firefly_strength,
+        "fireflies": r.fireflies,
         "attempts": r.attempts,
         "cancel_requested": r.cancel_requested,
         "timings_ms": r.timings,
@@ -246,6 +249,8 @@ struct SubmitQuery {
     variant: Option<String>,
     deadline_seconds: Option<u64>,
     idempotency_key: Option<String>,
+    fireflies: Option<String>,
+    firefly_strength: Option<f32>,
 }
 
 fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions, Error> {
@@ -267,6 +272,13 @@ fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions,
             Error::BadRequest(format!("`{v}` is not a variant name (expected auto or the name of a loaded variant)"))
         })?),
     };
+    let fireflies = match q.fireflies.as_deref() {
+        None | Some("") => None,
+        Some(f) => Some(
+            FireflyMode::parse(f)
+                .ok_or_else(|| Error::BadRequest(format!("unknown fireflies `{f}` (expected auto or off)")))?,
+        ),
+    };
     Ok(JobOptions {
         priority,
         layers,
@@ -277,6 +289,8 @@ fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions,
         label: q.label,
         variant,
         deadline_seconds: q.deadline_seconds,
+        fireflies,
+        firefly_strength: q.firefly_strength,
     })
 }
 

@@ -43,7 +43,7 @@ use tokio::sync::{broadcast, watch};
 
 use crate::auth::ClientId;
 use crate::config::ServeArgs;
-use crate::engine::{EngineConfig, Variant};
+use crate::engine::{EngineConfig, Fireflies, Variant};
 use crate::error::{Error, Result};
 use crate::frame::Limits;
 use crate::telemetry::Telemetry;
@@ -96,6 +96,8 @@ pub struct Settings {
     pub max_jobs_per_client: usize,
     pub workers: usize,
     pub engine: EngineConfig,
+    /// Firefly handling of jobs that do not choose their own.
+    pub fireflies: Fireflies,
     pub tile_delay: Duration,
     pub startup_delay: Duration,
 }
@@ -117,6 +119,7 @@ impl Settings {
             max_jobs_per_client: args.max_jobs_per_client(),
             workers: args.workers(),
             engine,
+            fireflies: args.fireflies.settings(),
             tile_delay: args.debug_tile_delay,
             startup_delay: args.debug_startup_delay,
         }
@@ -201,6 +204,7 @@ pub(crate) struct Success {
     pub timings: Timings,
     pub metrics: Option<JobMetrics>,
     pub sanitized: SanitizedCounts,
+    pub fireflies: FireflyCounts,
     pub missing_variances: Vec<String>,
     pub pixels: u64,
     pub result: Vec<u8>,
@@ -216,6 +220,7 @@ pub(crate) struct Claim {
     pub input: PathBuf,
     pub reference: Option<PathBuf>,
     pub variant: Option<Variant>,
+    pub fireflies: Fireflies,
     pub layers: Vec<Layer>,
     pub deadline_at_ms: Option<i64>,
     pub queue_ms: f64,
@@ -452,6 +457,7 @@ impl JobService {
             timings: None,
             metrics: None,
             sanitized: None,
+            fireflies: None,
             missing_variances: Vec::new(),
             error: None,
             result_bytes: None,
@@ -807,6 +813,7 @@ impl JobService {
                         input: self.inner.store.input_path(&id),
                         reference: r.has_reference.then(|| self.inner.store.reference_path(&id)),
                         variant: r.options.variant,
+                        fireflies: r.options.fireflies(self.inner.settings.fireflies),
                         layers: r.options.layers.clone(),
                         deadline_at_ms: r.deadline_at_ms,
                         queue_ms,
@@ -900,6 +907,7 @@ impl JobService {
         record.progress = s.progress;
         record.metrics = s.metrics;
         record.sanitized = Some(s.sanitized);
+        record.fireflies = Some(s.fireflies);
         record.missing_variances = s.missing_variances;
         record.error = None;
         record.result_bytes = Some(s.result.len() as u64);
@@ -928,6 +936,7 @@ impl JobService {
             tel.observe_stage(stage, ms);
         }
         tel.job_output(s.pixels, record.sanitized.as_ref().map_or(0, |c| c.total));
+        tel.fireflies_handled(s.fireflies.handled);
         Ok(record)
     }
 

@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::engine::Variant;
+use crate::engine::{Fireflies, FireflyMode, FireflyReport, Variant};
 
 /// Lifecycle: `queued → running → succeeded | failed | cancelled`. A running job that is
 /// interrupted (shutdown deadline, crash) goes back to `queued` and runs again.
@@ -112,6 +112,12 @@ pub struct JobOptions {
     pub variant: Option<Variant>,
     /// Seconds from submission after which the job fails; `None` uses the daemon default.
     pub deadline_seconds: Option<u64>,
+    /// Firefly handling (docs/fireflies.md); `None` uses the daemon default.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fireflies: Option<FireflyMode>,
+    /// Strength of the firefly handling, 0.1 to 10; `None` uses the daemon default.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub firefly_strength: Option<f32>,
 }
 
 impl JobOptions {
@@ -140,7 +146,18 @@ impl JobOptions {
         if let Some(s) = self.deadline_seconds.filter(|s| *s > MAX_DEADLINE_SECONDS) {
             return Err(format!("deadline_seconds is {s}, at most {MAX_DEADLINE_SECONDS} (30 days) is accepted"));
         }
+        if let Some(strength) = self.firefly_strength {
+            Fireflies { mode: FireflyMode::Auto, strength }.validate()?;
+        }
         Ok(self)
+    }
+
+    /// The firefly handling of the job: its own options, else `default` (the daemon's).
+    pub fn fireflies(&self, default: Fireflies) -> Fireflies {
+        Fireflies {
+            mode: self.fireflies.unwrap_or(default.mode),
+            strength: self.firefly_strength.unwrap_or(default.strength),
+        }
     }
 }
 
@@ -194,6 +211,16 @@ mod finite_or_null {
 pub struct JobMetrics {
     pub input: QualityMetrics,
     pub output: QualityMetrics,
+}
+
+/// The firefly handling a job ran with and the samples (pixel × component) it clamped.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct FireflyCounts {
+    pub mode: FireflyMode,
+    pub strength: f32,
+    /// Samples handled, all components together.
+    pub handled: u64,
+    pub by_component: FireflyReport,
 }
 
 /// Non-finite samples replaced by 0 while decoding.
@@ -271,6 +298,9 @@ pub struct JobRecord {
     pub timings: Option<Timings>,
     pub metrics: Option<JobMetrics>,
     pub sanitized: Option<SanitizedCounts>,
+    /// Firefly handling of the run (docs/fireflies.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fireflies: Option<FireflyCounts>,
     /// Variance buffers the frame lacked, taken as 0 (docs/frame-layout.md).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub missing_variances: Vec<String>,

@@ -9,8 +9,8 @@ use std::time::Instant;
 use sha2::{Digest, Sha256};
 
 use super::{
-    Claim, JobError, JobErrorCode, JobMetrics, JobService, Layer, ModelDescription, Outcome, Progress, SanitizedCounts,
-    Success, Timings,
+    Claim, FireflyCounts, JobError, JobErrorCode, JobMetrics, JobService, Layer, ModelDescription, Outcome, Progress,
+    SanitizedCounts, Success, Timings,
 };
 use crate::engine::{Engine, EngineError};
 use crate::frame::{write_exr, Frame, OutputLayer};
@@ -149,7 +149,7 @@ fn run(service: &JobService, engine: &mut Engine, claim: &Claim) -> Outcome {
 
     let mut stop = Stop::No;
     let delay = settings.tile_delay;
-    let result = engine.denoise(&frame, claim.variant, &mut |p| {
+    let result = engine.denoise_with(&frame, claim.variant, claim.fireflies, &mut |p| {
         service.progress(&claim.id, Progress { tiles_done: p.tiles_done as u32, tiles_total: p.tiles_total as u32 });
         if !delay.is_zero() {
             std::thread::sleep(delay);
@@ -212,7 +212,8 @@ fn run(service: &JobService, engine: &mut Engine, claim: &Claim) -> Outcome {
     let timings = Timings {
         queue: claim.queue_ms,
         decode: decode_ms,
-        preprocess: out.timings.preprocess.as_secs_f64() * 1e3,
+        // Firefly handling is counted as preprocessing.
+        preprocess: (out.timings.fireflies + out.timings.preprocess).as_secs_f64() * 1e3,
         inference: out.timings.inference.as_secs_f64() * 1e3,
         reconstruction: out.timings.reconstruction.as_secs_f64() * 1e3,
         encode: encode_ms,
@@ -224,6 +225,12 @@ fn run(service: &JobService, engine: &mut Engine, claim: &Claim) -> Outcome {
         timings,
         metrics,
         sanitized: SanitizedCounts { total: frame.sanitized.total, by_buffer: frame.sanitized.by_buffer.clone() },
+        fireflies: FireflyCounts {
+            mode: claim.fireflies.mode,
+            strength: claim.fireflies.strength,
+            handled: out.fireflies.total(),
+            by_component: out.fireflies,
+        },
         missing_variances: frame.missing_variances.clone(),
         pixels: (out.width * out.height) as u64,
         result: encoded,

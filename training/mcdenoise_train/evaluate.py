@@ -10,6 +10,12 @@ high) on the same frames' color (diffuse + specular). All metrics (RelMSE, DSSIM
 SMAPE) come from the engine (`mcdenoise run --reference` / `mcdenoise metrics`), so every
 method is measured by the same code. Writes `results.jsonl` (one row per frame and
 method) and `results.md` (means per method, per scene and per sample count).
+
+`--outliers N` adds the firefly check (docs/fireflies.md): N isolated outliers of 10-1000x
+the local level are injected into each frame (variance raised to match, as a renderer's
+would be), and every method runs on the injected copy too: our models with the firefly
+handling `auto` and `off`, OIDN as it is. `outliers.jsonl` and a section of `results.md`
+give the RelMSE ratio injected / clean per method, scene and sample count.
 """
 
 from __future__ import annotations
@@ -30,11 +36,14 @@ from .frames import read_exr, write_exr
 METRICS = ("relmse", "dssim", "psnr", "smape")
 
 
-def run_engine(noisy: str, reference: str, models: str, variant: str | None, out: Path, threads: int) -> dict:
-    cmd = [engine_binary(), "run", noisy, "-o", str(out), "--reference", reference, "--models", models,
+def run_engine(noisy: str, reference: str, models: str, variant: str | None, out: Path, threads: int,
+               fireflies: str | None = None) -> dict:
+    cmd = [engine_binary(), "run", str(noisy), "-o", str(out), "--reference", reference, "--models", models,
            "--threads", str(threads)]
     if variant:
         cmd += ["--variant", variant]
+    if fireflies:
+        cmd += ["--fireflies", fireflies]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         raise RuntimeError(f"mcdenoise run {noisy}: {res.stderr.strip()}")
@@ -61,6 +70,99 @@ def run_oidn(noisy: str, out: Path, quality: str = "high") -> float:
     seconds = time.perf_counter() - t
     write_exr(out, {c: den[..., i] for i, c in enumerate("RGB")})
     return seconds
+
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def luminance(ch: dict[str, np.ndarray]) -> np.ndarray:
+    """Luminance of diffuse + specular."""
+    return sum(w * (ch[f"diffuse.{c}"] + ch[f"specular.{c}"]) for w, c in zip(LUMINANCE, "RGB"))
+
+
+def inject_outliers(ch: dict[str, np.ndarray], count: int, seed: int) -> tuple[dict[str, np.ndarray], list]:
+    """`count` isolated outliers (at least 6 pixels apart, 2 from the border) of 10-1000x
+    (log-uniform) the local level, the mean luminance of diffuse + specular over the pixel's
+    5x5 neighbourhood, put into the diffuse or the specular buffer (alternately) as a white
+    `delta` that makes the pixel's luminance that multiple; the component's variance gains
+    `delta**2`, as a renderer's variance of the pixel mean would with one sample carrying
+    the outlier. Pixels darker than a tenth of the frame's median are skipped. The same
+    injection as tests/fireflies.rs. Returns the new channels and the (y, x) chosen."""
+    out = {k: v.copy() for k, v in ch.items()}
+    lum = luminance(ch)
+    h, w = lum.shape
+    median = float(np.median(lum))
+    rng = np.random.default_rng(seed)
+    chosen: list[tuple[int, int]] = []
+    for _ in range(100_000):
+        if len(chosen) == count:
+            break
+        y, x = int(rng.integers(2, h - 2)), int(rng.integers(2, w - 2))
+        if any(max(abs(y - cy), abs(x - cx)) < 6 for cy, cx in chosen):
+            continue
+        level = float(lum[y - 2:y + 3, x - 2:x + 3].mean())
+        if level < 0.1 * median:
+            continue
+        factor = 10.0 ** (1.0 + 2.0 * rng.random())
+        delta = factor * level - float(lum[y, x])
+        comp = "diffuse" if len(chosen) % 2 == 0 else "specular"
+        for c in "RGB":
+            out[f"{comp}.{c}"][y, x] += delta
+        for name in out:
+            if name.startswith(f"{comp}Variance."):
+                out[name][y, x] += delta * delta
+        chosen.append((y, x))
+    if len(chosen) < count:
+        raise ValueError(f"cannot place {count} outliers in a {w}x{h} frame")
+    return out, chosen
+
+
+def summarize_outliers(rows: list[dict]) -> str:
+    """RelMSE injected / clean per method (and firefly handling), overall and per scene and
+    sample count."""
+    keys = list(dict.fromkeys(r["label"] for r in rows))
+    lines = ["", f"## Outlier injection ({rows[0]['outliers']} isolated outliers of 10-1000x the local level, "
+             "variance raised to match): RelMSE injected / clean", "",
+             "| method | frames | mean ratio | worst ratio |", "|---|---|---|---|"]
+    for k in keys:
+        sel = [r["ratio"] for r in rows if r["label"] == k]
+        lines.append(f"| {k} | {len(sel)} | {np.mean(sel):.3g} | {np.max(sel):.3g} |")
+    lines += ["", "| scene | spp | " + " | ".join(keys) + " |", "|---" * (len(keys) + 2) + "|"]
+    for scene, spp in sorted({(r["scene"], r["spp"]) for r in rows}, key=lambda t: (str(t[0]), t[1])):
+        cells = []
+        for k in keys:
+            sel = [r["ratio"] for r in rows if r["label"] == k and r["scene"] == scene and r["spp"] == spp]
+            cells.append(f"{np.mean(sel):.3g}" if sel else "–")
+        lines.append(f"| {scene} | {spp} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def outlier_check(r: dict, base: dict, a, tmp: Path, clean: dict[str, float], seed: int) -> list[dict]:
+    """The firefly check of one frame: every method on an injected copy; `clean` holds the
+    RelMSE of the methods on the frame itself (keys as the rows' labels)."""
+    injected, _ = inject_outliers(read_exr(r["noisy"]), a.outliers, seed)
+    path = tmp / "injected.exr"
+    write_exr(path, injected)
+    rows = []
+
+    def row(label: str, relmse: float) -> None:
+        rows.append({**base, "label": label, "outliers": a.outliers, "clean": clean[label], "injected": relmse,
+                     "ratio": relmse / clean[label]})
+
+    for spec in a.method:
+        name, _, rest = spec.partition("=")
+        models, _, variant = rest.partition(":")
+        for mode in ("auto", "off"):
+            label = f"{name} (fireflies {mode})"
+            if label not in clean:
+                rep = run_engine(r["noisy"], r["reference"], models, variant or None, tmp / "c.exr", a.threads, mode)
+                clean[label] = rep["metrics"]["output"]["relmse"]
+            rep = run_engine(path, r["reference"], models, variant or None, tmp / "i.exr", a.threads, mode)
+            row(label, rep["metrics"]["output"]["relmse"])
+    if a.oidn:
+        run_oidn(path, tmp / "oidn-injected.exr")
+        row("oidn", metrics(tmp / "oidn-injected.exr", r["reference"])["relmse"])
+    return rows
 
 
 def summarize(rows: list[dict]) -> str:
@@ -165,6 +267,9 @@ def main(argv=None) -> int:
     p.add_argument("--crops", type=int, default=0, metavar="N",
                    help="write side-by-side crops (input, each method, reference) of the lowest sample count "
                         "of N scenes as OUT/crops/*.png")
+    p.add_argument("--outliers", type=int, default=0, metavar="N",
+                   help="also inject N isolated outliers into each frame and report RelMSE injected / clean per "
+                        "method, with and without the firefly handling (docs/fireflies.md)")
     p.add_argument("--out", required=True)
     a = p.parse_args(argv)
     out = Path(a.out)
@@ -173,6 +278,7 @@ def main(argv=None) -> int:
     if not records:
         raise SystemExit(f"{a.data}: no frames in split {a.split!r}")
     rows = []
+    outlier_rows = []
     crop_scenes = list(dict.fromkeys(r.get("scene", "") for r in records))[: a.crops]
     lowest = {sc: min(r["spp"] for r in records if r.get("scene", "") == sc) for sc in crop_scenes}
     with tempfile.TemporaryDirectory() as tmp:
@@ -188,6 +294,11 @@ def main(argv=None) -> int:
             if a.oidn:
                 secs = run_oidn(r["noisy"], Path(tmp) / "oidn.exr")
                 rows.append({**base, "method": "oidn", **metrics(Path(tmp) / "oidn.exr", r["reference"]), "seconds": secs})
+            if a.outliers:
+                frame_rows = [x for x in rows if x["frame"] == base["frame"]]
+                clean = {("oidn" if x["method"] == "oidn" else f"{x['method']} (fireflies auto)"): x["relmse"]
+                         for x in frame_rows if x["method"] != "input"}
+                outlier_rows += outlier_check(r, base, a, Path(tmp), clean, seed=len(outlier_rows) + 22)
             if lowest.get(base["scene"]) == base["spp"]:
                 (out / "crops").mkdir(exist_ok=True)
                 ch = read_exr(r["noisy"])
@@ -203,9 +314,15 @@ def main(argv=None) -> int:
     with open(out / "results.jsonl", "w") as f:
         for row in rows:
             f.write(json.dumps(row) + "\n")
-    (out / "results.md").write_text(summarize(rows))
+    summary = summarize(rows)
+    if outlier_rows:
+        with open(out / "outliers.jsonl", "w") as f:
+            for row in outlier_rows:
+                f.write(json.dumps(row) + "\n")
+        summary += summarize_outliers(outlier_rows)
+    (out / "results.md").write_text(summary)
     plot(rows, out / "quality.png")
-    print(summarize(rows))
+    print(summary)
     return 0
 
 

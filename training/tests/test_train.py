@@ -121,3 +121,32 @@ def test_evaluate_compares_input_models_and_oidn(tmp_path):
     by = {r["method"]: r for r in rows}
     assert by["oidn"]["relmse"] < by["input"]["relmse"]
     assert "| oidn | 1 |" in (tmp_path / "eval" / "results.md").read_text()
+
+
+@needs_engine
+def test_evaluate_reports_the_outlier_check(tmp_path):
+    from pathlib import Path
+
+    from mcdenoise_train import evaluate
+    from mcdenoise_train.frames import read_exr
+
+    root = make_dataset(tmp_path / "d")
+    tiny = Path(__file__).resolve().parents[2] / "tests/fixtures/models/tiny"
+    assert evaluate.main(["--data", str(root), "--method", f"tiny={tiny}", "--oidn", "--outliers", "3",
+                          "--out", str(tmp_path / "eval")]) == 0
+    rows = [json.loads(l) for l in open(tmp_path / "eval" / "outliers.jsonl")]
+    assert [r["label"] for r in rows] == ["tiny (fireflies auto)", "tiny (fireflies off)", "oidn"]
+    by = {r["label"]: r for r in rows}
+    # The outliers hurt the untreated path far more than the handled one.
+    assert by["tiny (fireflies off)"]["ratio"] > 2 * by["tiny (fireflies auto)"]["ratio"], rows
+    assert "## Outlier injection" in (tmp_path / "eval" / "results.md").read_text()
+
+    # The injection itself: isolated, 10-1000x the local level, variance raised to match.
+    frame = read_exr(root / "s0-spp8.exr")
+    injected, chosen = evaluate.inject_outliers(frame, 3, seed=5)
+    assert len(chosen) == 3
+    y, x = chosen[0]
+    level = evaluate.luminance(frame)[y - 2:y + 3, x - 2:x + 3].mean()
+    assert 9.9 * level <= evaluate.luminance(injected)[y, x] <= 1001 * level
+    var = next(k for k in frame if k.startswith("diffuseVariance."))
+    assert injected[var][y, x] > frame[var][y, x]

@@ -1,0 +1,470 @@
+//! Firefly handling: isolated, very bright samples (rare paths through small lights,
+//! caustics, rough metals) are found from the frame's own statistics and clamped before
+//! the networks see the frame.
+//!
+//! A kernel-predicting network keeps such a pixel at nearly full strength (its kernel
+//! weights the centre tap), so this runs as its own stage, on the whole frame, before
+//! [`preprocess`](super::preprocess) and tiling. It depends on the network only through the
+//! frame's buffers: every variant and contract calls [`detect`] on each color buffer it
+//! denoises (diffuse and specular today; a beauty-only variant calls it on its color).
+//!
+//! # Method
+//!
+//! Per component, on the luminance `g` of the color (the diffuse color divided by
+//! `albedo + ε` first, as the network sees it, so that texture is not mistaken for
+//! outliers), in the log domain `y = ln(g + δ)`, where `δ` is a tenth of the component's
+//! median positive luminance (dark regions then count as that level, not as minus
+//! infinity). A pixel is an outlier when all of these hold:
+//!
+//! 1. **Isolated**: each of its 8 neighbours is below half of it (`g_q + δ < (g_p + δ) / 2`).
+//!    A light, a highlight or a bright edge two or more pixels wide always has a neighbour
+//!    of similar brightness, so it is never touched.
+//! 2. **Far above its neighbourhood**: `y_p > min(m + τ / s, y_max + ln 4 / s)`, with `m`
+//!    the median, `σ` the normalised MAD (1.4826 × median absolute deviation) and `y_max`
+//!    the largest `y` of the 5×5 neighbourhood without the centre, `τ = max(3σ, ln 4)` and
+//!    `s` the strength. The MAD makes the bound follow the local noise: a noisy glossy
+//!    region tolerates larger excursions than a smooth wall. Where the neighbourhood spans
+//!    orders of magnitude (sparse samples at a low level) the MAD is large, so a pixel more
+//!    than 4× above every neighbour is an outlier whatever the MAD says.
+//! 3. **Noisy by its own variance** (when the frame has the component's variance buffer):
+//!    `Var / g² ≥ 1/4`. The variance of a pixel mean whose value comes from `k` of its
+//!    samples is about `g² / k`, so this keeps bright values that four or more samples
+//!    agree on (a small light seen directly, a stable one-pixel glint), whatever their
+//!    neighbours say. Variance alone cannot find outliers (a renderer raises it with the
+//!    outlier), so it only vetoes.
+//!
+//! An outlier's color is scaled (all three channels, chroma kept) so that its luminance is
+//! that bound (minus `δ`) or the luminance of the brightest pixel of its neighbourhood,
+//! whichever is lower: the pixel then holds a value its neighbours make plausible, at the
+//! top of their range. Its variance is left as it is, raised by the outlier: it tells the
+//! network that the pixel is unreliable. docs/fireflies.md gives the measurements behind
+//! these choices (clamping to the bound alone, or to the median; setting the variance to
+//! the neighbourhood's or scaling it).
+//!
+//! Detection reads the original frame only, and every decision depends on a 5×5
+//! neighbourhood, so the result does not depend on tiling; the engine runs it once per
+//! frame, parallel over rows.
+
+use rayon::prelude::*;
+
+use super::preprocess::{luminance, EPS};
+use crate::frame::Plane;
+
+/// Whether outliers are handled.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FireflyMode {
+    /// Detect and clamp (the default).
+    #[default]
+    Auto,
+    /// Leave the frame as it is.
+    Off,
+}
+
+impl FireflyMode {
+    pub const ALL: [FireflyMode; 2] = [FireflyMode::Auto, FireflyMode::Off];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            FireflyMode::Auto => "auto",
+            FireflyMode::Off => "off",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<FireflyMode> {
+        FireflyMode::ALL.into_iter().find(|m| m.name() == s)
+    }
+}
+
+/// Default strength: the thresholds of the module documentation as written.
+pub const DEFAULT_STRENGTH: f32 = 1.0;
+/// Accepted strengths. Below 0.1 the bound is 10× further than at 1 (nothing is
+/// detected in practice; use `off`); above 10 nearly every isolated local maximum is.
+pub const STRENGTH_RANGE: std::ops::RangeInclusive<f32> = 0.1..=10.0;
+
+/// How outliers are handled: the mode and the strength `s` (the log-domain bound above the
+/// neighbourhood median is divided by `s`: 2 halves it, 0.5 doubles it).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Fireflies {
+    pub mode: FireflyMode,
+    pub strength: f32,
+}
+
+impl Default for Fireflies {
+    fn default() -> Self {
+        Fireflies { mode: FireflyMode::Auto, strength: DEFAULT_STRENGTH }
+    }
+}
+
+impl Fireflies {
+    pub const OFF: Fireflies = Fireflies { mode: FireflyMode::Off, strength: DEFAULT_STRENGTH };
+
+    /// Checks the strength; the message names the accepted range.
+    pub fn validate(self) -> Result<Fireflies, String> {
+        if !STRENGTH_RANGE.contains(&self.strength) {
+            return Err(format!(
+                "firefly strength {} is outside {}..={}",
+                self.strength,
+                STRENGTH_RANGE.start(),
+                STRENGTH_RANGE.end()
+            ));
+        }
+        Ok(self)
+    }
+
+    pub fn enabled(self) -> bool {
+        self.mode == FireflyMode::Auto
+    }
+}
+
+/// One color buffer to examine: its three planes, its variance planes (one or three; `None`
+/// when the frame has none, or only zeros filled in for a missing buffer) and, for a
+/// buffer the network sees divided by albedo, the albedo.
+#[derive(Clone, Copy)]
+pub struct Layer<'a> {
+    pub color: [&'a [f32]; 3],
+    pub variance: Option<&'a [Plane]>,
+    pub albedo: Option<[&'a [f32]; 3]>,
+}
+
+/// The change to one outlier pixel.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Fix {
+    /// Row-major pixel index.
+    pub index: usize,
+    /// Factor applied to the three color channels.
+    pub scale: f32,
+}
+
+/// Isolation: every neighbour below this fraction of the pixel (in `g + δ`).
+const ISOLATION: f32 = 0.5;
+/// `δ` as a fraction of the component's median positive luminance.
+const DELTA_FRACTION: f32 = 0.1;
+/// The bound is at least this many normalised MADs above the median...
+const MAD_FACTOR: f32 = 3.0;
+/// ... and at least this factor above it.
+const MIN_FACTOR: f32 = 4.0;
+/// ... unless it is this factor above the brightest pixel of the neighbourhood.
+const MAX_FACTOR: f32 = 4.0;
+/// Smallest relative variance `Var / g²` of a pixel that is treated.
+const MIN_RELATIVE_VARIANCE: f32 = 0.25;
+/// Neighbourhood radius of the median and MAD (5×5).
+const RADIUS: usize = 2;
+const NEIGHBOURS: usize = (2 * RADIUS + 1) * (2 * RADIUS + 1) - 1;
+
+/// `x`, with ±∞ replaced by ±`f32::MAX` and NaN by 0.
+fn finite(x: f32) -> f32 {
+    if x.is_nan() {
+        0.0
+    } else {
+        x.clamp(-f32::MAX, f32::MAX)
+    }
+}
+
+/// The outliers of one color buffer of a `w`×`h` frame, by pixel index. Runs on the current
+/// rayon pool.
+pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<Fix> {
+    if !settings.enabled() || w == 0 || h == 0 {
+        return Vec::new();
+    }
+    let n = w * h;
+    // Luminance in the network's domain, finite.
+    let g: Vec<f32> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let c = |k: usize| {
+                let v = layer.color[k][i].max(0.0);
+                match layer.albedo {
+                    Some(a) => v / (a[k][i].max(0.0) + EPS),
+                    None => v,
+                }
+            };
+            finite(luminance(finite(c(0)), finite(c(1)), finite(c(2))))
+        })
+        .collect();
+    let delta = {
+        let mut positive: Vec<f32> = g.par_iter().copied().filter(|v| *v > 0.0).collect();
+        if positive.is_empty() {
+            return Vec::new();
+        }
+        let mid = positive.len() / 2;
+        let (_, median, _) = positive.select_nth_unstable_by(mid, f32::total_cmp);
+        (*median * DELTA_FRACTION).max(f32::MIN_POSITIVE)
+    };
+    let strength = settings.strength;
+    (0..h)
+        .into_par_iter()
+        .flat_map_iter(|y| {
+            let g = &g;
+            (0..w).filter_map(move |x| examine(layer, g, w, h, x, y, delta, strength))
+        })
+        .collect()
+}
+
+/// The fix of pixel (x, y), if it is an outlier.
+#[allow(clippy::too_many_arguments)]
+fn examine(
+    layer: Layer<'_>,
+    g: &[f32],
+    w: usize,
+    h: usize,
+    x: usize,
+    y: usize,
+    delta: f32,
+    strength: f32,
+) -> Option<Fix> {
+    let i = y * w + x;
+    let centre = g[i] + delta;
+    // 1. Isolated: every 8-neighbour below half of it (cheap; most pixels stop here).
+    let limit = ISOLATION * centre;
+    let (x0, x1) = (x.saturating_sub(1), (x + 1).min(w - 1));
+    let (y0, y1) = (y.saturating_sub(1), (y + 1).min(h - 1));
+    for yy in y0..=y1 {
+        for xx in x0..=x1 {
+            if (yy != y || xx != x) && g[yy * w + xx] + delta >= limit {
+                return None;
+            }
+        }
+    }
+    // 3. Noisy by its own variance.
+    if let Some(var) = layer.variance {
+        let v = variance_luminance(layer, var, i);
+        if v < MIN_RELATIVE_VARIANCE * g[i] * g[i] {
+            return None;
+        }
+    }
+    // 2. Far above the 5×5 neighbourhood: median and MAD of ln(g + δ) without the centre.
+    let mut logs = [0f32; NEIGHBOURS];
+    let mut k = 0;
+    let mut brightest = 0f32;
+    for_neighbourhood(w, h, x, y, |j| {
+        logs[k] = (g[j] + delta).ln();
+        brightest = brightest.max(g[j]);
+        k += 1;
+    });
+    if k == 0 {
+        // A 1×1 frame: nothing to compare with.
+        return None;
+    }
+    let logs = &mut logs[..k];
+    let m = median(logs);
+    for v in logs.iter_mut() {
+        *v = (*v - m).abs();
+    }
+    let sigma = 1.4826 * median(logs);
+    let tau = (MAD_FACTOR * sigma).max(MIN_FACTOR.ln()) / strength;
+    // Where the neighbourhood spans orders of magnitude (sparse samples at low levels) the
+    // MAD is large; a pixel far above everything around it is an outlier all the same.
+    let bound = (m + tau).min((brightest + delta).ln() + MAX_FACTOR.ln() / strength);
+    if centre.ln() <= bound {
+        return None;
+    }
+    // The clamp target: the bound, and no brighter than the brightest neighbour.
+    let target = (bound.exp() - delta).min(brightest).max(0.0);
+    let scale = if g[i] > 0.0 { (target / g[i]).min(1.0) } else { 1.0 };
+    Some(Fix { index: i, scale })
+}
+
+/// Luminance of the variance of pixel `i`, in the same domain as `g` (divided by
+/// `(albedo + ε)²` where the color is divided by `albedo + ε`).
+fn variance_luminance(layer: Layer<'_>, var: &[Plane], i: usize) -> f32 {
+    let v = |k: usize| {
+        let v = finite(var[k.min(var.len() - 1)][i].max(0.0));
+        match layer.albedo {
+            Some(a) => v / (a[k][i].max(0.0) + EPS).powi(2),
+            None => v,
+        }
+    };
+    finite(luminance(finite(v(0)), finite(v(1)), finite(v(2))))
+}
+
+/// Calls `f` with the index of each pixel of the 5×5 neighbourhood of (x, y) inside the
+/// frame, the centre excluded.
+fn for_neighbourhood(w: usize, h: usize, x: usize, y: usize, mut f: impl FnMut(usize)) {
+    let (x0, x1) = (x.saturating_sub(RADIUS), (x + RADIUS).min(w - 1));
+    let (y0, y1) = (y.saturating_sub(RADIUS), (y + RADIUS).min(h - 1));
+    for yy in y0..=y1 {
+        for xx in x0..=x1 {
+            if yy != y || xx != x {
+                f(yy * w + xx);
+            }
+        }
+    }
+}
+
+/// The median of `v` (the upper one of an even count); `v` is reordered. 0 when empty.
+fn median(v: &mut [f32]) -> f32 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f32::total_cmp).1
+}
+
+/// Applies `fixes` (from [`detect`] on the same buffer) to a color buffer. The variance
+/// planes are left as they are (docs/fireflies.md: the variance that the outlier raised
+/// tells the network the pixel is unreliable, which measured best).
+pub fn apply(fixes: &[Fix], color: &mut [Plane]) {
+    for fix in fixes {
+        for plane in color.iter_mut() {
+            plane[fix.index] *= fix.scale;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A smooth, mildly noisy field (deterministic), level about `level`.
+    fn field(w: usize, h: usize, level: f32, seed: u64) -> Plane {
+        let mut s = seed;
+        (0..w * h)
+            .map(|i| {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                let noise = ((s >> 40) as f32 / (1u64 << 24) as f32 - 0.5) * 0.4;
+                let (x, y) = ((i % w) as f32, (i / w) as f32);
+                level * (1.0 + 0.2 * (x * 0.2).sin() * (y * 0.15).cos() + noise)
+            })
+            .collect()
+    }
+
+    fn layer<'a>(c: &'a [Plane; 3], var: Option<&'a [Plane]>) -> Layer<'a> {
+        Layer { color: [&c[0], &c[1], &c[2]], variance: var, albedo: None }
+    }
+
+    fn rgb(w: usize, h: usize, level: f32) -> [Plane; 3] {
+        [field(w, h, level, 1), field(w, h, level, 2), field(w, h, level, 3)]
+    }
+
+    #[test]
+    fn a_single_outlier_of_any_magnitude_is_clamped_to_its_neighbourhood() {
+        let (w, h) = (32, 24);
+        for magnitude in [1e4f32, 1e8, 1e15, 1e22, 1e30, f32::MAX] {
+            let mut c = rgb(w, h, 0.5);
+            let i = 11 * w + 17;
+            for p in c.iter_mut() {
+                p[i] = magnitude;
+            }
+            let fixes = detect(layer(&c, None), w, h, Fireflies::default());
+            assert_eq!(fixes.len(), 1, "{magnitude:e}: {fixes:?}");
+            assert_eq!(fixes[0].index, i);
+            apply(&fixes, &mut c);
+            let v = luminance(c[0][i], c[1][i], c[2][i]);
+            // No brighter than the brightest neighbour (the field's level is ~0.5).
+            assert!(v > 0.3 && v < 0.8, "{magnitude:e} became {v}");
+        }
+    }
+
+    #[test]
+    fn a_clean_field_is_left_alone() {
+        let (w, h) = (40, 30);
+        let c = rgb(w, h, 2.0);
+        assert!(detect(layer(&c, None), w, h, Fireflies::default()).is_empty());
+    }
+
+    #[test]
+    fn small_lights_highlights_and_edges_survive() {
+        let (w, h) = (48, 40);
+        let mut c = rgb(w, h, 0.3);
+        let put = |c: &mut [Plane; 3], x: usize, y: usize, v: f32| {
+            for p in c.iter_mut() {
+                p[y * w + x] = v;
+            }
+        };
+        // A 2×2 light at 1000× the background.
+        for (x, y) in [(5, 5), (6, 5), (5, 6), (6, 6)] {
+            put(&mut c, x, y, 300.0);
+        }
+        // A specular highlight 3 pixels wide with a bright core and falloff.
+        for (dx, dy, v) in [(0, 0, 80.0), (1, 0, 50.0), (-1, 0, 50.0), (0, 1, 45.0), (0, -1, 45.0)] {
+            put(&mut c, (20 + dx) as usize, (10 + dy) as usize, v);
+        }
+        // A one-pixel-wide bright line (a lit edge).
+        for y in 20..35 {
+            put(&mut c, 30, y, 40.0 + (y as f32).sin());
+        }
+        // A bright region with a hard edge (half the frame's width, rows 30..).
+        for y in 30..40 {
+            for x in 0..20 {
+                put(&mut c, x, y, 25.0);
+            }
+        }
+        let fixes = detect(layer(&c, None), w, h, Fireflies::default());
+        assert!(fixes.is_empty(), "{fixes:?}");
+        // Even at the strongest setting.
+        let strong = Fireflies { mode: FireflyMode::Auto, strength: *STRENGTH_RANGE.end() };
+        let fixes = detect(layer(&c, None), w, h, strong);
+        assert!(fixes.is_empty(), "{fixes:?}");
+    }
+
+    #[test]
+    fn a_one_pixel_light_with_low_variance_survives_and_with_high_variance_does_not() {
+        let (w, h) = (24, 24);
+        let mut c = rgb(w, h, 0.5);
+        let i = 12 * w + 12;
+        for p in c.iter_mut() {
+            p[i] = 500.0;
+        }
+        // Variance of a pixel mean: the background's small; the light's as if all 16
+        // samples agreed (small) or one carried it all (about the value squared).
+        let mut var = vec![vec![0.01f32; w * h]];
+        var[0][i] = 0.5;
+        assert!(detect(layer(&c, Some(&var)), w, h, Fireflies::default()).is_empty());
+        var[0][i] = 500.0 * 500.0;
+        let fixes = detect(layer(&c, Some(&var)), w, h, Fireflies::default());
+        assert_eq!(fixes.len(), 1);
+        apply(&fixes, &mut c);
+        // No brighter than the brightest neighbour (the field reaches about 0.5 × 1.4).
+        assert!(c[1][i] < 0.8, "{}", c[1][i]);
+    }
+
+    #[test]
+    fn texture_is_not_an_outlier_once_divided_by_albedo() {
+        // Texels of albedo 0.9, one pixel each, on a surface of albedo 0.02, lit smoothly:
+        // in the color they are isolated pixels 45× brighter than their neighbours.
+        let (w, h) = (20, 20);
+        let albedo: Plane = (0..w * h).map(|i| if i % w % 4 == 0 && i / w % 4 == 0 { 0.9 } else { 0.02 }).collect();
+        let light = field(w, h, 1.0, 9);
+        let c: [Plane; 3] = std::array::from_fn(|_| light.iter().zip(&albedo).map(|(l, a)| l * a).collect());
+        let l = Layer { color: [&c[0], &c[1], &c[2]], variance: None, albedo: Some([&albedo, &albedo, &albedo]) };
+        assert!(detect(l, w, h, Fireflies::default()).is_empty());
+        // Without the albedo the bright texels look isolated.
+        assert!(!detect(layer(&c, None), w, h, Fireflies::default()).is_empty());
+    }
+
+    #[test]
+    fn strength_moves_the_bound_and_off_does_nothing() {
+        let (w, h) = (30, 30);
+        let mut c = rgb(w, h, 1.0);
+        let i = 15 * w + 15;
+        for p in c.iter_mut() {
+            p[i] = 6.0;
+        }
+        // 6× the level: above the default bound (4×), below the bound at strength 0.5 (16×).
+        assert_eq!(detect(layer(&c, None), w, h, Fireflies::default()).len(), 1);
+        let weak = Fireflies { mode: FireflyMode::Auto, strength: 0.5 };
+        assert!(detect(layer(&c, None), w, h, weak).is_empty());
+        assert!(detect(layer(&c, None), w, h, Fireflies::OFF).is_empty());
+        assert!(Fireflies { mode: FireflyMode::Auto, strength: 0.0 }.validate().is_err());
+        assert!(Fireflies { mode: FireflyMode::Auto, strength: f32::NAN }.validate().is_err());
+    }
+
+    #[test]
+    fn a_black_frame_and_tiny_frames_are_handled() {
+        for (w, h) in [(1, 1), (2, 1), (1, 5), (3, 3)] {
+            let mut c: [Plane; 3] = std::array::from_fn(|_| vec![0.0; w * h]);
+            assert!(detect(layer(&c, None), w, h, Fireflies::default()).is_empty());
+            c[0][0] = 1e30;
+            let fixes = detect(layer(&c, None), w, h, Fireflies::default());
+            if w * h == 1 {
+                // A lone pixel has no neighbourhood to compare with.
+                assert!(fixes.is_empty());
+            } else {
+                assert_eq!(fixes.len(), 1, "{w}x{h}");
+                apply(&fixes, &mut c);
+                assert!(c[0][0].is_finite() && c[0][0] < 1e30, "{w}x{h}: {}", c[0][0]);
+            }
+        }
+    }
+}
