@@ -30,19 +30,35 @@ serve: build
 
 ## Training data (docs/training-data.md). `make dataset N=100 SIZE=256` renders N procedural
 ## scenes into data/: noisy frames at each of SPP (comma-separated) and a REF_SPP reference
-## per scene, a manifest and a train/validation split by scene. Interrupted runs resume.
+## per scene, a manifest and a train/validation split by scene, plus TEST_N test scenes
+## (disjoint seeds) into data-test/. Interrupted runs resume. WORKERS processes render in
+## parallel (several feed one GPU: MI_VARIANT=cuda_ad_rgb). RENDERER=both also renders every
+## scene with Blender Cycles (needs scripts/setup-bpy), RENDERER=cycles only with Cycles.
 N ?= 10
+TEST_N ?= 0
 SIZE ?= 256
-SPP ?= 4,8,16,32,64,128
+SPP ?= 1,2,4,8,16,32,64,128
 REF_SPP ?= 4096
 VAL_FRACTION ?= 0.1
 DATA ?= data
+WORKERS ?= 1
+MI_VARIANT ?= llvm_ad_rgb
+RENDERER ?= mitsuba
+DATAGEN_ARGS ?=
 
-.PHONY: dataset fixtures
+.PHONY: dataset datagen-timing fixtures
 
 dataset: setup
 	cd training && $(PY) -m mcdenoise_train.datagen.dataset --out $(abspath $(DATA)) --scenes $(N) \
-	  --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --val-fraction $(VAL_FRACTION)
+	  --test-scenes $(TEST_N) --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --val-fraction $(VAL_FRACTION) \
+	  --workers $(WORKERS) --variant $(MI_VARIANT) --renderer $(RENDERER) $(DATAGEN_ARGS)
+
+## Times the generator: 6 scenes at SIZE into a scratch directory; summary.json (printed)
+## gives frames/h and, per scene, the seconds of each launch (tracing, compilation, execution).
+datagen-timing: setup
+	rm -rf target/datagen-timing
+	cd training && $(PY) -m mcdenoise_train.datagen.dataset --out $(CURDIR)/target/datagen-timing --scenes 6 \
+	  --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --workers $(WORKERS) --variant $(MI_VARIANT) --no-progress
 
 ## Regenerates the committed test frames in tests/fixtures/frames (see its README).
 fixtures: setup
@@ -108,3 +124,12 @@ fuzz: setup
 
 fuzz-cmin: setup
 	cd fuzz && for t in $(FUZZ_TARGETS); do cargo +nightly fuzz cmin -s none $$t corpus/$$t -- -max_len=65536 || exit 1; done
+
+## Production network (contract v2, docs/training.md): trains msnet on DATA in the
+## background-friendly, resumable way; on a GPU machine use scripts/gpu-pipeline.
+MS_RUN ?= runs/ms
+MS_ARGS ?= --steps 20000 --batch 8 --patch 96 --val-every 500
+.PHONY: train-ms
+train-ms: build
+	cd training && $(PY) -m mcdenoise_train.train_ms --data $(abspath $(DATA)) --out $(abspath $(MS_RUN)) \
+	  --device cpu $(MS_ARGS) --resume --export $(abspath $(MS_RUN))/models

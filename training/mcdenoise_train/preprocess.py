@@ -54,7 +54,7 @@ def raw_from_channels(ch: dict[str, np.ndarray]) -> tuple[np.ndarray, float, flo
             src = ch.get("covariance.Y")
         if src is not None:
             out[i] = src
-    out = np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+    out = np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=0.0)  # half-float files overflow to inf
     return out, float(max(out[DEPTH].max(), 0.0)), float(max(out[COV].max(), 0.0))
 
 

@@ -27,6 +27,8 @@ def filter_k(logits: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
     k = int(round(taps ** 0.5))
     if k * k != taps or k % 2 == 0:
         raise ValueError(f"logits must have k² channels for an odd k, got {taps}")
+    if not color.requires_grad:
+        return _FilterK.apply(logits.float(), color)
     r = k // 2
     h, w = logits.shape[2:]
     weights = torch.softmax(logits.float(), dim=1)
@@ -36,6 +38,39 @@ def filter_k(logits: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
         dy, dx = divmod(t, k)
         out = out + weights[:, t : t + 1] * padded[:, :, dy : dy + h, dx : dx + w]
     return out
+
+
+class _FilterK(torch.autograd.Function):
+    """`filter_k` for a color that needs no gradient (the training case: the pyramid is
+    made of inputs), with the backward written out as in `recon._KernelFilter`:
+    `dL/dl_t = w_t (g . c_t - g . out)`; nothing of size taps x C x H x W is kept."""
+
+    @staticmethod
+    def forward(ctx, logits, color):
+        taps = logits.shape[1]
+        k = int(round(taps ** 0.5))
+        r = k // 2
+        h, w = logits.shape[2:]
+        weights = torch.softmax(logits, dim=1)
+        padded = F.pad(color, (r, r, r, r), mode="replicate")
+        out = torch.zeros_like(color)
+        for t in range(taps):
+            dy, dx = divmod(t, k)
+            out.addcmul_(weights[:, t : t + 1], padded[:, :, dy : dy + h, dx : dx + w])
+        ctx.save_for_backward(weights, padded, out)
+        ctx.k = k
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        weights, padded, out = ctx.saved_tensors
+        k = ctx.k
+        h, w = weights.shape[2:]
+        dots = torch.empty_like(weights)
+        for t in range(k * k):
+            dy, dx = divmod(t, k)
+            dots[:, t] = (grad_out * padded[:, :, dy : dy + h, dx : dx + w]).sum(1)
+        return weights * (dots - (grad_out * out).sum(1, keepdim=True)), None
 
 
 def up2(x: torch.Tensor) -> torch.Tensor:

@@ -40,13 +40,17 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from . import losses
 from .contract import FEATURES_FULL, NOCOV_INDICES
 from .data import read_manifest
 from .frames import read_exr
+from .checkpoint import save_checkpoint
+from .model import DenoiserNet, paper_config
 from .msnet import DEFAULT, MSNet, pad_to_multiple
 from .preprocess import ALBEDO, COV, DIFFUSE, SPECULAR, VAR, preprocess, raw_from_channels, targets
+from .recon import reconstruct as _recon_v1
 from .recon_ms import reconstruct
 
 COV_FEATURES = [i for i in range(len(FEATURES_FULL)) if i not in NOCOV_INDICES]
@@ -78,15 +82,19 @@ def load_raw(record: dict, cache: Path | None) -> dict[str, np.ndarray | float]:
 class FrameSet:
     """Frames of one split as device tensors: raw [F, 20, H, W], ref [F, 6, H, W], maxima [F, 2]."""
 
-    def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None):
+    def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None,
+                 cache: bool = False):
         recs = []
         for d in dirs:
             recs += [(r, Path(d)) for r in read_manifest(d) if r.get("split", "train") == split]
         recs = recs[:limit]
         by_shape: dict[tuple, list] = {}
         self.names, self.spp, self.scenes = [], [], []
-        for r, d in recs:
-            a = load_raw(r, d / "raw-cache")
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+            loaded = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if cache else None), recs))
+        for (r, d), a in zip(recs, loaded):
             by_shape.setdefault(a["raw"].shape, []).append(a)
             self.names.append(Path(r["noisy"]).stem)
             self.spp.append(int(r.get("spp", 0)))
@@ -189,15 +197,39 @@ def batch_inputs(raw, ref, maxima, cov_dropout: float, g: torch.Generator, crop:
 # ----- training -----------------------------------------------------------------------
 
 
-def forward(net: MSNet, b: dict[str, torch.Tensor], autocast: bool):
+class Lin2020Pair(nn.Module):
+    """The paper's network (Lin et al. 2020 at its published size, contract v1): one
+    `DenoiserNet` per component, trained here with the same data and recipe as `MSNet`."""
+
+    size_multiple = 1
+
+    def __init__(self, in_features: int = len(FEATURES_FULL), **config):
+        super().__init__()
+        cfg = {**paper_config(in_features), **config}
+        self.diffuse, self.specular = DenoiserNet(**cfg), DenoiserNet(**cfg)
+        self.config = {"arch": "lin2020", **self.diffuse.config}
+
+    def forward(self, diffuse, specular, features):
+        return self.diffuse(diffuse, features), self.specular(specular, features)
+
+    def flops_per_pixel(self) -> int:
+        return self.diffuse.flops_per_pixel() + self.specular.flops_per_pixel()
+
+    def description(self) -> str:
+        return "lin2020 pair: " + self.diffuse.description()
+
+
+def forward(net, b: dict[str, torch.Tensor], autocast: bool):
     with torch.autocast(device_type=b["diffuse"].device.type, dtype=torch.bfloat16, enabled=autocast):
         out = net(b["diffuse"], b["specular"], b["features"])
     out = [o.float() for o in out]
+    if isinstance(net, Lin2020Pair):
+        return _recon_v1(out[0], out[1], b["diffuse"][:, :3], b["specular"][:, :3], b["albedo"])
     return reconstruct(out, net.levels, b["diffuse"], b["specular"], b["albedo"])
 
 
 @torch.no_grad()
-def denoise_whole(net: MSNet, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool = False) -> torch.Tensor:
+def denoise_whole(net, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool = False) -> torch.Tensor:
     """Whole frames [N, 20, H, W] denoised (padded to the network's size multiple): [N, 3, H, W]."""
     h, w = raw.shape[-2:]
     b = preprocess(raw, maxima[:, 0], maxima[:, 1], "full")
@@ -223,6 +255,25 @@ def validate(net: MSNet, val: FrameSet, zero_cov: bool = False) -> dict[str, flo
             "score": float(np.mean(np.log(rel)) + np.mean(np.log(np.maximum(dssim, 1e-6))))}
 
 
+def export_lin2020(checkpoint: Path, models: Path) -> None:
+    """The paper's pair as contract-v1 files in `models/lin2020/`, named variant `lin2020`."""
+    import onnx
+
+    from .checkpoint import load_checkpoint
+    from .export import export_onnx
+
+    nets, _ = load_checkpoint(checkpoint)
+    for c, net in nets.items():
+        path = models / "lin2020" / f"{c}.onnx"
+        export_onnx(net, path, c, "full")
+        proto = onnx.load(str(path))
+        for p in proto.metadata_props:
+            if p.key == "mcdenoise.variant":
+                p.value = "lin2020"
+        onnx.save(proto, str(path))
+        print(f"{path}: {net.param_count()} params, {net.flops_per_pixel()} FLOP/px", file=sys.stderr)
+
+
 def parse(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", action="append", required=True, help="data set directory (repeatable)")
@@ -239,7 +290,12 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--perceptual", type=float, default=0.0)
     p.add_argument("--val-every", type=int, default=500)
     p.add_argument("--val-frames", type=int, default=None)
+    p.add_argument("--raw-cache", action="store_true",
+                   help="keep each frame's raw buffers as .npz beside the data (faster loading next time)")
     p.add_argument("--time-limit", type=float, default=None, help="stop (saving state) after this many seconds")
+    p.add_argument("--deadline", type=float, default=None,
+                   help="unix time by which training, validation and export must be done: caps --time-budget "
+                        "and --time-limit at what is left after loading the data, less a minute for the export")
     p.add_argument("--time-budget", type=float, default=None,
                    help="fit the schedule to this many seconds of training: after 50 steps the step count is set "
                         "from the measured rate (and kept on resume)")
@@ -247,6 +303,10 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--arch", choices=("msnet", "lin2020"), default="msnet")
+    p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
+    p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
+    p.add_argument("--lin-predictor-width", type=int, default=128, help="lin2020: predictor width (paper: 128)")
     p.add_argument("--ext-width", type=int, default=DEFAULT["ext_width"])
     p.add_argument("--ext-blocks", type=int, default=DEFAULT["ext_blocks"])
     p.add_argument("--enc", default=",".join(map(str, DEFAULT["enc"])))
@@ -270,16 +330,28 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     t_load = time.time()
-    train = FrameSet(a.data, "train", dev)
-    val = FrameSet(a.data, "val", dev, a.val_frames)
+    train = FrameSet(a.data, "train", dev, cache=a.raw_cache)
+    val = FrameSet(a.data, "val", dev, a.val_frames, cache=a.raw_cache)
     if not len(train):
         raise SystemExit(f"{a.data}: no training frames")
+    if min(train.raw.shape[-2:]) < a.patch + 1:
+        raise SystemExit(f"--patch {a.patch} needs frames of at least {a.patch + 1} pixels a side "
+                         f"(the training frames are {train.raw.shape[-1]}x{train.raw.shape[-2]})")
     print(f"{len(train)} training / {len(val)} validation frames loaded in {time.time() - t_load:.0f} s",
           file=sys.stderr, flush=True)
+    if a.deadline is not None:
+        left = a.deadline - time.time() - 60
+        a.time_budget = left if a.time_budget is None else min(a.time_budget, left)
+        a.time_limit = left if a.time_limit is None else min(a.time_limit, left)
     torch.manual_seed(a.seed)
-    net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
-                enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
-                kernel_size=a.kernel_size, levels=a.levels).to(dev).to(memory_format=torch.channels_last)
+    if a.arch == "lin2020":
+        net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
+        a.cov_dropout = 0.0  # the paper's network always has covariance
+    else:
+        net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
+                    enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
+                    kernel_size=a.kernel_size, levels=a.levels)
+    net = net.to(dev).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=a.lr)
 
     def schedule(total: int, done: int = 0):
@@ -365,11 +437,17 @@ def main(argv=None) -> int:
                   f"(input {v.get('input_relmse', float('nan')):.4f})", file=sys.stderr, flush=True)
             if v["score"] < best:
                 best = v["score"]
-                torch.save({"config": net.config, "state_dict": {k: t.detach().cpu() for k, t in net.state_dict().items()},
+                if isinstance(net, Lin2020Pair):
+                    save_checkpoint(out / "best.pt", {"diffuse": net.diffuse, "specular": net.specular},
+                                    step=step, val=v, train_config=vars(a))
+                else:
+                    torch.save({"config": net.config, "state_dict": {k: t.detach().cpu() for k, t in net.state_dict().items()},
                             "step": step, "val": v}, out / "best.pt")
             save_state()
     log.close()
-    if a.export:
+    if a.export and a.arch == "lin2020":
+        export_lin2020(out / "best.pt", Path(a.export))
+    elif a.export:
         from . import export_ms
 
         export_ms.main(["--checkpoint", str(out / "best.pt"), "--out", a.export])

@@ -10,7 +10,11 @@
 - the covariance operators: a flat mirror is plain travel, a concave mirror of curvature
   k focuses collimated light at 1/(2k);
 - the data set CLI writes a manifest, splits by scene and resumes;
-- the committed fixture frames are complete and small.
+- the committed fixture frames are complete and small;
+- Blender Cycles frames (when a Python with bpy is installed, scripts/setup-bpy): every
+  channel present, diffuse + specular (each from its own passes) = Combined, variances
+  from independent renders agree with the observed error (factor 2), and the engine reads
+  them with no variance missing.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ mi = set_variant("llvm_ad_rgb")
 import drjit as dr  # noqa: E402
 
 from mcdenoise_train.datagen import covariance as cv  # noqa: E402
-from mcdenoise_train.datagen import dataset, exr_io, render, scenes  # noqa: E402
+from mcdenoise_train.datagen import cycles, dataset, exr_io, render, scenes  # noqa: E402
 from mcdenoise_train.datagen.integrator import LUM, Options  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -170,7 +174,7 @@ def test_covariance_concave_mirror_focuses():
 def test_scene_generator_is_seeded_and_varied():
     a, b = scenes.generate(42), scenes.generate(42)
     assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
-    kinds = {scenes.generate(s)["kind"] for s in range(12)}
+    kinds = {scenes.generate(s)["kind"] for s in range(60)}
     assert kinds == set(scenes.KINDS)
     mats = {o["material"]["type"] for s in range(30) for o in scenes.generate(s)["objects"] if "material" in o}
     assert {"diffuse", "roughplastic", "roughconductor", "dielectric"} <= mats
@@ -178,27 +182,89 @@ def test_scene_generator_is_seeded_and_varied():
         scenes.build(scenes.generate(s), 8, 8)  # loads (meshes, textures, instances)
 
 
+@pytest.mark.parametrize("family", scenes.KINDS)
+def test_every_family_is_seeded_and_loads(family):
+    a, b = scenes.generate(7, family), scenes.generate(7, family)
+    assert a == b and a["kind"] == family and scenes.generate(8, family) != a
+    scene = scenes.build(a, 8, 8)  # curves, leaves, water, bump maps, emissive shapes load
+    assert len(scene.emitters()) >= 1 and len(scene.shapes()) >= 2
+
+
 def test_dataset_cli_manifest_split_resume(tmp_path):
-    args = ["--out", str(tmp_path), "--scenes", "2", "--size", "16", "--spp", "2,4", "--ref-spp", "8",
-            "--val-fraction", "0.5", "--no-progress", "--kinds", "cornell"]
+    out, test_out = tmp_path / "d", tmp_path / "d-test"
+    args = ["--out", str(out), "--scenes", "2", "--size", "16", "--spp", "1,2,4", "--ref-spp", "8",
+            "--val-fraction", "0.5", "--no-progress", "--families", "cornell", "--test-scenes", "1"]
     assert dataset.main(args) == 0
-    recs = dataset.read_manifest(tmp_path / "manifest.jsonl")
+    recs = dataset.read_manifest(out / "manifest.jsonl")
     assert [r["split"] for r in recs] == ["train", "val"]
     for r in recs:
-        assert set(r["frames"]) == {"2", "4", "ref"}
-        for f in r["frames"].values():
-            assert exr_io.is_complete(tmp_path / f["path"])  # relative to --out
-        assert all(np.isfinite(v) and v > 0 for v in r["ref_variance_ratio"]["4"].values())
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["rendered"] == 2
+        assert r["seed"] < dataset.TEST_SEED_BASE and (r["renderer"], r["family"]) == ("mitsuba", "cornell")
+        assert set(r["frames"]) == {"1", "2", "4", "ref"}
+        for k, f in r["frames"].items():
+            assert exr_io.is_complete(out / f["path"], exr_io.CHANNELS if k != "ref" else exr_io.CHANNELS_NOCOV)
+            assert f["seed"] == r["seed"] and f["spp"] == (8 if k == "ref" else int(k))
+        # the reference's noise floor is recorded and lies below every input's error
+        assert 0 < r["frames"]["ref"]["noise_floor"] < min(r["frames"][s]["rel_error"] for s in ("1", "2", "4"))
+        assert r["ref_clean"] == (max(r["frames"][s]["noise_floor_ratio"] for s in ("1", "2", "4"))
+                                  <= dataset.CLEAN_REF_RATIO)
+        assert all(np.isfinite(v) and v > 0 for v in r["ref_variance_ratio"]["1"].values())
+        assert r["timings"]["noisy"]["seconds"] > 0 and r["timings"]["ref"]["seconds"] > 0
+    # the test set: its own directory, disjoint seeds, split "test"
+    (t,) = dataset.read_manifest(test_out / "manifest.jsonl")
+    assert t["split"] == "test" and t["seed"] >= dataset.TEST_SEED_BASE
+    assert (test_out / t["frames"]["ref"]["path"]).is_file() and not list(out.glob("test"))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["rendered"] == 3 and summary["frames"] == 12
+    assert summary["mean_seconds_per_scene"]["noisy"]["seconds"] > 0
     # resume: nothing to do; then one missing frame makes that scene render again
     assert dataset.main(args) == 0
-    assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2
-    (tmp_path / recs[1]["frames"]["2"]["path"]).unlink()
+    assert json.loads((out / "summary.json").read_text())["skipped"] == 3
+    (out / recs[1]["frames"]["2"]["path"]).unlink()
     assert dataset.main(args) == 0
-    s = json.loads((tmp_path / "summary.json").read_text())
-    assert (s["rendered"], s["skipped"]) == (1, 1)
+    s = json.loads((out / "summary.json").read_text())
+    assert (s["rendered"], s["skipped"]) == (1, 2)
     assert not list(tmp_path.rglob("*.tmp"))
+    # a test set never shares a directory with training data
+    with pytest.raises(SystemExit):
+        dataset.main(["--out", str(tmp_path / "x"), "--test-out", str(out), "--scenes", "0", "--test-scenes", "1",
+                      "--size", "8", "--spp", "2", "--ref-spp", "4", "--no-progress"])
+
+
+def test_dataset_workers_share_one_manifest(tmp_path):
+    args = ["--out", str(tmp_path), "--scenes", "3", "--size", "12", "--spp", "2,4", "--ref-spp", "4",
+            "--no-progress", "--families", "cornell", "--workers", "2"]
+    assert dataset.main(args) == 0
+    recs = dataset.read_manifest(tmp_path / "manifest.jsonl")
+    assert sorted(r["index"] for r in recs) == [0, 1, 2] and all(r["complete"] for r in recs)
+    assert sorted(r["worker"] for r in recs) == [0, 0, 1]  # scene i on worker i mod 2
+    assert len((tmp_path / "manifest.jsonl").read_text().splitlines()) == 3
+    assert dataset.main(args) == 0
+    assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 3
+
+
+def test_half_precision_frames(cornell, tmp_path):
+    import OpenEXR
+
+    ch, meta = render.frame_channels(cornell[0])
+    exr_io.write_frame(tmp_path / "h.exr", ch, meta, precision="half")
+    with OpenEXR.File(str(tmp_path / "h.exr"), separate_channels=True) as f:
+        types = {k: c.pixels.dtype for k, c in f.channels().items()}
+        assert f.header()["compression"] == OpenEXR.PXR24_COMPRESSION
+    assert all(t == (np.float32 if "Variance" in k else np.float16) for k, t in types.items()), types
+    back, _ = exr_io.read_frame(tmp_path / "h.exr")
+    for k, v in ch.items():
+        np.testing.assert_allclose(back[k], v, rtol=1e-3, atol=1e-4 if "Variance" not in k else 0, err_msg=k)
+
+
+def test_one_spp_frame_has_variance():
+    spec = scenes.cornell(5)
+    scene = scenes.build(spec, 24, 24)
+    pa = scenes.camera_params(spec, 24)["pixel_angle"]
+    frames = {}
+    render.render_ladder(scene, 24, 24, [1, 4], 3, pa, Options(), on_frame=lambda s, m, t: frames.update({s: m}))
+    assert sorted(frames) == [1, 4] and frames[1].n == 1 and frames[4].n == 4
+    v1, v4 = frames[1].var_of_mean("color").mean(), frames[4].var_of_mean("color").mean()
+    assert v1 > 0 and 2.0 < v1 / v4 < 8.0  # expected 4
 
 
 def test_committed_fixture_frames():
@@ -210,3 +276,71 @@ def test_committed_fixture_frames():
         ch, _ = exr_io.read_frame(f)
         want = LAYOUT - {"covariance", "covarianceVariance.Z"} if "nocov" in f.name else LAYOUT
         assert set(ch) == want, f.name
+
+
+needs_bpy = pytest.mark.skipif(not cycles.available(), reason="no Python with bpy (run scripts/setup-bpy)")
+
+
+@pytest.fixture(scope="module")
+def cycles_frames():
+    # 24x24 Cornell box: 16 spp (8 renders of 2) and an independent 512-spp reference
+    return cycles.render_frames(scenes.cornell(5), 24, 24, [16], 512, 5)[0]
+
+
+@needs_bpy
+def test_cycles_frame_channels_and_split(cycles_frames, tmp_path):
+    ch, meta = cycles_frames[16]
+    assert set(ch) == set(exr_io.CHANNELS_NOCOV) and meta == {"spp": 16, "renders": 8}
+    assert all(np.isfinite(v).all() and v.shape == (24, 24) for v in ch.values())
+    for c in "RGB":  # specular is built from the glossy/transmission/emission/environment passes
+        split = ch[f"diffuse.{c}"] + ch[f"specular.{c}"]
+        assert np.all(np.abs(split - ch[c]) <= 1e-4 * (1.0 + np.abs(ch[c]))), c
+    assert ch["diffuse.G"].mean() > 0.05 and ch["specular.G"].mean() > 0.005
+    assert ch["depth.Z"].max() < 100 and (ch["albedo.G"] > 0).mean() > 0.9
+
+
+@needs_bpy
+@pytest.mark.parametrize("buf", ["color", "diffuse", "specular"])
+def test_cycles_variance_matches_error(cycles_frames, buf):
+    (xn, _), (xr, _) = cycles_frames[16], cycles_frames["ref"]
+    names = ("R", "G", "B") if buf == "color" else tuple(f"{buf}.{c}" for c in "RGB")
+    lum = lambda ch: sum(w * ch[n] for w, n in zip(LUM, names))  # noqa: E731
+    rel = 1.0 / (lum(xr) ** 2 + 0.01)
+    err = sum(w * (xn[n] - xr[n]) ** 2 for w, n in zip(LUM, names)) * rel
+    var = (xn[f"{buf}Variance.Z"] + xr[f"{buf}Variance.Z"]) * rel
+    ratio = err.mean() / var.mean()
+    assert 1 / VARIANCE_FACTOR < ratio < VARIANCE_FACTOR, f"cycles/{buf}: error/variance = {ratio:.3f}"
+
+
+@needs_bpy
+def test_engine_reads_cycles_frames_with_every_variance(cycles_frames, tmp_path):
+    import os
+    import subprocess
+
+    binary = os.environ.get("MCDENOISE_BIN") or str(REPO / "target" / "release" / "mcdenoise")
+    if not Path(binary).is_file() or not os.environ.get("ORT_DYLIB_PATH"):
+        pytest.skip("needs the engine (make build) and ORT_DYLIB_PATH")
+    ch, meta = cycles_frames[16]
+    exr_io.write_frame(tmp_path / "c.exr", ch, meta, precision="half")
+    r = subprocess.run([binary, "run", str(tmp_path / "c.exr"), "-o", str(tmp_path / "out.exr"),
+                        "--models", str(REPO / "models")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    report = json.loads(r.stdout)
+    assert report["missing_variances"] == [] and report["variant"] == "nocov"
+
+
+@needs_bpy
+def test_dataset_cli_both_renderers(tmp_path):
+    args = ["--out", str(tmp_path), "--scenes", "1", "--size", "12", "--spp", "2,4", "--ref-spp", "16",
+            "--no-progress", "--families", "cornell", "--renderer", "both"]
+    assert dataset.main(args) == 0
+    recs = {r["renderer"]: r for r in dataset.read_manifest(tmp_path / "manifest.jsonl")}
+    assert set(recs) == {"mitsuba", "cycles"}
+    assert recs["cycles"]["scene"] == recs["mitsuba"]["scene"] + "-cycles"
+    assert recs["cycles"]["split"] == recs["mitsuba"]["split"] and recs["cycles"]["complete"]
+    for k, f in recs["cycles"]["frames"].items():
+        ch, meta = exr_io.read_frame(tmp_path / f["path"])
+        assert set(ch) == set(exr_io.CHANNELS_NOCOV) and f["renderer"] == "cycles"
+        assert meta["spp"] == (16 if k == "ref" else int(k))
+    assert dataset.main(args) == 0  # resumes: both complete
+    assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2

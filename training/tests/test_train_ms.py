@@ -109,3 +109,18 @@ def test_training_steps_resume_and_export(tmp_path):
     for variant in ("full", "nocov"):
         meta = read_metadata_v2(models / variant / "model.onnx")
         assert meta["mcdenoise.contract"] == "2" and meta["mcdenoise.variant"] == variant
+
+
+def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
+    from mcdenoise_train.export import read_metadata
+
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    models = tmp_path / "models"
+    assert train_ms.main(["--data", str(root), "--out", str(tmp_path / "run"), "--arch", "lin2020",
+                          "--lin-width", "4", "--lin-blocks", "1", "--lin-predictor-width", "4", "--steps", "2",
+                          "--patch", "32", "--batch", "2", "--threads", "2", "--device", "cpu",
+                          "--export", str(models)]) == 0
+    for c in ("diffuse", "specular"):
+        meta = read_metadata(models / "lin2020" / f"{c}.onnx")
+        assert meta["mcdenoise.contract"] == "1" and meta["mcdenoise.variant"] == "lin2020"
+        assert meta["mcdenoise.component"] == c and meta["mcdenoise.kernel_size"] == "21"

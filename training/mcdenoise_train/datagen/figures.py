@@ -7,7 +7,9 @@
 - `datagen-shadow-edge.png`: the shadow-edge test scene, its covariance, and a profile
   across the edge;
 - `datagen-split.png`: colour = diffuse + specular, with albedo, normal and depth;
-- `datagen-scenes.png`: a sample of generated scenes (seeds 0-11).
+- `datagen-scenes.png`: a sample of generated scenes (seeds 0-11);
+- `datagen-families.png`: a contact sheet of every scene family (`--only families`):
+  noisy input, reference, albedo, normal and covariance of one scene each.
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("../docs/img"))
     p.add_argument("--spp", type=int, default=512)
     p.add_argument("--size", type=int, default=192)
+    p.add_argument("--only", choices=("all", "families"), default="all")
+    p.add_argument("--families", default=None, help="families of the contact sheet (default: all)")
+    p.add_argument("--seed", type=int, default=1, help="seed of each family's scene on the contact sheet")
     args = p.parse_args(argv)
     set_variant()
     import matplotlib
@@ -58,6 +63,10 @@ def main(argv=None) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     S = args.size
+    if args.only == "families":
+        families = args.families.split(",") if args.families else list(scenes.KINDS)
+        contact_sheet(plt, families, args.seed, 128, 16, args.spp, args.out / "datagen-families.png")
+        return 0
 
     # colour next to covariance
     specs = [("caustic_test", scenes.caustic_test()), ("cornell(5)", scenes.cornell(5)),
@@ -124,6 +133,34 @@ def main(argv=None) -> int:
     plt.close(fig)
     print("datagen-scenes.png", file=sys.stderr)
     return 0
+
+
+def contact_sheet(plt, families, seed, size, spp, ref_spp, path):
+    """One row per family: noisy input, reference (both exposed by the same factor, from
+    the reference), albedo, normal, covariance (of the noisy frame)."""
+    from . import scenes
+
+    cols = ("noisy", "reference", "albedo", "normal", "covariance")
+    fig, ax = plt.subplots(len(families), len(cols), figsize=(2.0 * len(cols), 2.1 * len(families)), squeeze=False)
+    for r, fam in enumerate(families):
+        spec = scenes.generate(seed, fam)
+        noisy, _ = _render(spec, size, size, spp, seed=1)
+        ref, _ = _render(spec, size, size, ref_spp, seed=1 << 20)
+        lum = 0.2126 * ref["R"] + 0.7152 * ref["G"] + 0.0722 * ref["B"]
+        k = 0.5 / max(float(np.percentile(lum, 90)), 1e-6)
+        panels = [tonemap(k * _rgb(noisy)), tonemap(k * _rgb(ref)), np.clip(_rgb(noisy, "albedo"), 0, 1),
+                  np.clip(_rgb(noisy, "normal") * 0.5 + 0.5, 0, 1), noisy["covariance"]]
+        for c, img in enumerate(panels):
+            ax[r, c].imshow(img, cmap="inferno" if img.ndim == 2 else None, vmin=0, vmax=1)
+            ax[r, c].set_xticks([])
+            ax[r, c].set_yticks([])
+            if r == 0:
+                ax[r, c].set_title(f"{cols[c]}" + (f" {spp} spp" if c == 0 else f" {ref_spp} spp" if c == 1 else ""),
+                                   fontsize=8)
+        ax[r, 0].set_ylabel(f"{spec['name']}\n(exposure x{k:.2g})", fontsize=7)
+        print(spec["name"], file=sys.stderr, flush=True)
+    fig.savefig(path, dpi=72, bbox_inches="tight")
+    plt.close(fig)
 
 
 if __name__ == "__main__":

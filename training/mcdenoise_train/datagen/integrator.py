@@ -155,21 +155,39 @@ def _shape_operator(si, active):
                  dr.clip(W[1][1], -lim, lim))
 
 
-def trace(scene, sensor, sampler, n_lanes, spp, width, height, pixel_angle, opts: Options):
-    """Trace one sample per lane; lane i belongs to pixel i // spp. Returns a dict of
-    per-lane arrays and the pixel index of each lane."""
-    idx = dr.arange(mi.UInt32, n_lanes)
-    spp_o = dr.opaque(mi.UInt32, spp)
-    w_o = dr.opaque(mi.UInt32, width)
-    pix = idx // spp_o
-    px = pix % w_o
-    py = pix // w_o
-    film_size = mi.Vector2f(dr.opaque(mi.Float, width), dr.opaque(mi.Float, height))
+@dataclass
+class Camera:
+    """Per-scene values the kernel reads as opaque variables (not literals), so one
+    compiled kernel serves every scene, seed and sample count with the same code."""
+
+    width: mi.UInt32
+    film_size: mi.Vector2f
+    pixel_angle: mi.Float
+    aperture: mi.Float
+    focus: mi.Float
+    n_emitters: mi.Float
+
+    @staticmethod
+    def of(scene, width, height, pixel_angle):
+        aperture, focus = sensor_lens(scene.sensors()[0])
+        return Camera(dr.opaque(mi.UInt32, width),
+                      mi.Vector2f(dr.opaque(mi.Float, width), dr.opaque(mi.Float, height)),
+                      dr.opaque(mi.Float, pixel_angle), dr.opaque(mi.Float, aperture),
+                      dr.opaque(mi.Float, focus), dr.opaque(mi.Float, max(len(scene.emitters()), 1)))
+
+
+def trace(scene, sensor, sampler, pix, cam: Camera, opts: Options):
+    """Trace one camera sample per lane through pixel `pix` (row-major index) of the
+    film. Returns a dict of per-lane arrays."""
+    n_lanes = dr.width(pix)
+    px = pix % cam.width
+    py = pix // cam.width
     pos = mi.Vector2f(mi.Float(px) + sampler.next_1d(), mi.Float(py) + sampler.next_1d())
     ap = sampler.next_2d()
-    ray, _ = sensor.sample_ray(0.0, 0.5, pos / film_size, ap)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos / cam.film_size, ap)
+    pixel_angle = cam.pixel_angle
 
-    n_emitters = max(len(scene.emitters()), 1)
+    n_emitters = cam.n_emitters
     ctx = mi.BSDFContext()
     ctx_d = mi.BSDFContext()
     ctx_d.type_mask = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.DiffuseTransmission
@@ -339,10 +357,10 @@ def trace(scene, sensor, sampler, n_lanes, spp, width, height, pixel_angle, opts
            "normal": state["normal"], "depth": state["dist"]}
     if D > 0:
         eps = (1.0 / (2.0 * math.pi * opts.cov_floor_px)) ** 2
-        ell, energy = _covariance_backward(recs, pixel_angle, sensor_lens(sensor), eps)
+        ell, energy = _covariance_backward(recs, pixel_angle, (cam.aperture, cam.focus), eps)
         out["cov"] = ell
         out["cov_energy"] = energy
-    return out, pix
+    return out
 
 
 def sensor_lens(sensor):
@@ -406,8 +424,7 @@ def _covariance_backward(recs, pixel_angle, lens, eps):
     r0 = recs[0]
     S_cam = cv.travel(S_next, dr.select(r0.valid, r0.t_in, 0.0))
     aperture, focus = lens
-    if aperture > 0:
-        S_cam = cv.lens(S_cam, focus, aperture)
+    S_cam = cv.lens(S_cam, focus, aperture).select(aperture > 0, S_cam)
     ell = cv.log_eta(S_cam, r0.t_in * pixel_angle, pixel_angle, eps)
     ok = r0.valid & dr.isfinite(ell) & dr.isfinite(E_next)
     ell = dr.select(ok, ell, 0.0)

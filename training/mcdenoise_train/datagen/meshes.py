@@ -108,3 +108,49 @@ def to_mitsuba(P: np.ndarray, F: np.ndarray, name: str, bsdf, colors: np.ndarray
         m.add_attribute("vertex_color", 3, mi.Float(colors.astype(np.float32).ravel()))
     m.set_bsdf(bsdf)
     return m
+
+
+def heightfield(seed: int, half: float, amplitude: float, freq: float, n: int = 96):
+    """A square grid of side 2 * half in the xz plane (y up) displaced in y by smooth
+    noise of the given amplitude (a water surface). Returns (P, F)."""
+    from .textures import noise_3d
+
+    u = np.linspace(-half, half, n)
+    X, Z = np.meshgrid(u, u)
+    pts = np.stack([X.ravel(), np.zeros(X.size), Z.ravel()], 1)
+    h = noise_3d(pts / (2 * half) + 0.5, seed, freq) - 0.5
+    P = np.stack([X.ravel(), amplitude * h, Z.ravel()], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    F = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)]).astype(np.uint32)
+    return P, F
+
+
+def leaf_cards(rng: np.random.Generator, center, count: int, size: float, spread: float):
+    """Foliage: `count` leaves, each a flat card cut to a leaf outline (an ellipse-like
+    fan of triangles: the shape an alpha-textured card shows), randomly oriented around
+    `center`. Returns (P, F) of all leaves."""
+    Ps, Fs, base = [], [], 0
+    k = 10
+    t = np.linspace(0, np.pi, k)
+    for _ in range(count):
+        L = size * rng.uniform(0.6, 1.4)
+        W = L * rng.uniform(0.25, 0.45)
+        # outline: tip at x = L, stem at x = 0, width W * sin
+        top = np.stack([L * (1 - np.cos(t)) / 2, W * np.sin(t) / 2, np.zeros(k)], 1)
+        bot = top[1:-1][::-1] * np.array([1, -1, 1])
+        ring = np.concatenate([top, bot])
+        cen = np.array([[L / 2, 0.0, 0.0]])
+        V = np.concatenate([cen, ring])
+        m = len(ring)
+        F = np.array([[0, 1 + i, 1 + (i + 1) % m] for i in range(m)])
+        a = rng.normal(size=3)
+        a /= np.linalg.norm(a)
+        ang = rng.uniform(0, 2 * np.pi)
+        K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+        R = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
+        off = np.asarray(center) + rng.normal(size=3) * spread * np.array([1, 0.6, 1])
+        Ps.append(V @ R.T + off)
+        Fs.append(F + base)
+        base += len(V)
+    return np.concatenate(Ps), np.concatenate(Fs).astype(np.uint32)

@@ -29,12 +29,16 @@ from __future__ import annotations
 
 import copy
 import math
+import os
+import tempfile
 
 import numpy as np
 
 from . import meshes, textures
 
-KINDS = ("cornell", "room", "open")
+KINDS = ("cornell", "room", "open", "interior", "smalllights", "emissive", "caustics", "metals", "dof", "thin",
+         "textures")
+_TEMP_FILES: list[str] = []  # curve files written by `build`, removed once the scene is loaded
 CONDUCTORS = ("Au", "Cu", "Al", "Ag", "Cr", "W", "Ir", "Rh", "TiN", "CuO")
 
 
@@ -278,11 +282,351 @@ def open_scene(seed: int) -> dict:
     return {"name": f"open-{seed}", "kind": "open", "seed": seed, "camera": cam, "emitters": emitters, "objects": objs}
 
 
+def _exposure(rng, lo=0.05, hi=1.0):
+    """An overall light level, log-uniform: dim scenes are where denoisers struggle."""
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+
+def _box_room(rng, W, D, H, wall, floor_mat, window=None):
+    """Floor, ceiling and four walls of a W x D x H room centred on x = z = 0. With
+    `window` = (z_center, y_center, half_w, half_h), the west wall (x = -W/2) gets an
+    opening, built from four rectangles around it."""
+    objs = [
+        _rect("floor", [0, 0, 0], [0, 1, 0], [W / 2, D / 2], floor_mat),
+        _rect("ceiling", [0, H, 0], [0, -1, 0], [W / 2, D / 2], _diffuse([0.8, 0.8, 0.78])),
+        _rect("wall-n", [0, H / 2, -D / 2], [0, 0, 1], [W / 2, H / 2], _diffuse(wall)),
+        _rect("wall-s", [0, H / 2, D / 2], [0, 0, -1], [W / 2, H / 2], _diffuse(wall)),
+        _rect("wall-e", [W / 2, H / 2, 0], [-1, 0, 0], [D / 2, H / 2], _diffuse(wall)),
+    ]
+    if window is None:
+        objs.append(_rect("wall-w", [-W / 2, H / 2, 0], [1, 0, 0], [D / 2, H / 2], _diffuse(wall)))
+        return objs
+    zc, yc, hw, hh = window
+    x = -W / 2
+    # below, above, and the two sides of the opening (rect half sizes: [along z, along y])
+    parts = [((zc, (yc - hh) / 2), (hw, (yc - hh) / 2)), ((zc, (yc + hh + H) / 2), (hw, (H - yc - hh) / 2)),
+             (((-D / 2 + zc - hw) / 2, H / 2), ((zc - hw + D / 2) / 2, H / 2)),
+             (((D / 2 + zc + hw) / 2, H / 2), ((D / 2 - zc - hw) / 2, H / 2))]
+    for j, ((z, y), (a, b)) in enumerate(parts):
+        if a > 1e-3 and b > 1e-3:
+            # _frame_for_normal([1,0,0]) maps local x to -z... use a rotation-free description
+            objs.append({"shape": "rect", "name": f"wall-w{j}", "center": [x, y, z], "normal": [1, 0, 0],
+                         "half": [a, b], "material": _diffuse(wall)})
+    return objs
+
+
+def _sky(rng, exposure, sun_dir_range=None, sun=True):
+    env = {"type": "env", "zenith": _rgb(rng, 0.3, 1.0, rng.uniform(0.2, 0.6)),
+           "horizon": _rgb(rng, 0.5, 1.2, rng.uniform(0, 0.3)), "ground": _rgb(rng, 0.05, 0.3, 0.3),
+           "scale": round(float(rng.uniform(0.3, 1.5) * exposure), 4), "seed": int(rng.integers(1 << 31))}
+    if sun:
+        el_lo, el_hi, az_lo, az_hi = sun_dir_range or (10, 70, 0, 360)
+        env["sun"] = {"elevation": round(float(rng.uniform(el_lo, el_hi)), 2),
+                      "azimuth": round(float(rng.uniform(az_lo, az_hi)), 2),
+                      "size_deg": round(float(rng.uniform(0.6, 2.0)), 3),
+                      "strength": round(float(rng.uniform(2e3, 2e4)), 1)}
+    return env
+
+
+def _room_camera(rng, W, D, H, look_from_window=True):
+    target = [float(rng.uniform(-W / 4, W / 4)), float(rng.uniform(0.4, 1.2)), float(rng.uniform(-D / 4, D / 4))]
+    dist = float(rng.uniform(1.2, min(W, D) / 2 + 0.6))
+    az = rng.uniform(30, 150) if look_from_window else rng.uniform(-180, 180)  # camera on the +x side
+    cam = _look_at_camera(rng, target, dist, rng.uniform(40, 75), rng.uniform(0, 25), az, dof_p=0.1)
+    cam["origin"][0] = float(np.clip(cam["origin"][0], -W / 2 + 0.2, W / 2 - 0.2))
+    cam["origin"][1] = float(np.clip(cam["origin"][1], 0.3, H - 0.2))
+    cam["origin"][2] = float(np.clip(cam["origin"][2], -D / 2 + 0.2, D / 2 - 0.2))
+    return cam
+
+
+def _lamp(rng, pos, exposure, hanging=False, H=2.6):
+    """A shaded lamp: a small bright sphere inside an open cylindrical shade (light leaves
+    only through its open ends), on a thin stand or hanging from the ceiling."""
+    shade_r, shade_h = float(rng.uniform(0.12, 0.25)), float(rng.uniform(0.15, 0.3))
+    y = float(rng.uniform(1.6, H - 0.4)) if hanging else float(rng.uniform(0.9, 1.6))
+    r = float(rng.uniform(0.015, 0.035))
+    power = rng.uniform(0.5, 2.0) * exposure / (r * r)
+    shade = {"shape": "cylinder", "p0": [pos[0], y - shade_h / 2, pos[1]], "p1": [pos[0], y + shade_h / 2, pos[1]],
+             "radius": round(shade_r, 4), "material": _diffuse(_rgb(rng, 0.4, 0.9, 0.3))}
+    stand = ({"shape": "cylinder", "p0": [pos[0], y, pos[1]], "p1": [pos[0], H, pos[1]], "radius": 0.006,
+              "material": _diffuse([0.1, 0.1, 0.1])} if hanging else
+             {"shape": "cylinder", "p0": [pos[0], 0.0, pos[1]], "p1": [pos[0], y - shade_h / 2, pos[1]],
+              "radius": 0.012, "material": {"type": "roughconductor", "material": "Al", "alpha": 0.2}})
+    em = {"type": "sphere", "center": [pos[0], y, pos[1]], "radius": round(r, 4),
+          "radiance": [round(x * power, 3) for x in (1.0, 0.8, 0.55)]}
+    return [shade, stand], em
+
+
+def _furnish(rng, W, D, objs, n_lo=2, n_hi=6, glass=True):
+    if rng.random() < 0.6:
+        th = float(rng.uniform(0.5, 0.9))
+        objs.append({"shape": "cube", "center": [float(rng.uniform(-0.5, 0.5)), th / 2, float(rng.uniform(-D / 2 + 0.8, -0.2))],
+                     "half": [float(rng.uniform(0.3, 0.7)), th / 2, float(rng.uniform(0.25, 0.5))],
+                     "rot": [0, float(rng.uniform(0, 360)), 0], "material": random_material(rng, False)})
+    for x, z, sz in _place(rng, int(rng.integers(n_lo, n_hi)), min(W, D) / 3, (0.12, 0.35), 0.1):
+        objs.append(_object(rng, (x, z), sz, allow_glass=glass))
+
+
+def interior(seed: int) -> dict:
+    """A room lit mostly indirectly: sun and sky through a window opening, shaded lamps;
+    the camera mostly looks away from the window, at dim light levels."""
+    rng = np.random.default_rng(seed)
+    W, D, H = rng.uniform(3.5, 6), rng.uniform(3.5, 6), rng.uniform(2.4, 3.0)
+    exposure = _exposure(rng, 0.03, 0.6)
+    wall = _rgb(rng, 0.35, 0.85, rng.uniform(0, 0.3))
+    floor_mat = {"type": "roughplastic", "color": _rgb(rng, 0.1, 0.6), "alpha": round(float(rng.uniform(0.05, 0.4)), 3),
+                 "texture": {**_texture(rng), "scale": float(rng.choice([4, 8, 12]))}}
+    emitters, objs = [], []
+    mode = int(rng.integers(0, 3))  # 0: window, 1: lamps, 2: both
+    window = None
+    if mode in (0, 2):
+        hw, hh = float(rng.uniform(0.3, 0.9)), float(rng.uniform(0.35, 0.7))
+        window = (float(rng.uniform(-D / 2 + hw + 0.2, D / 2 - hw - 0.2)), float(rng.uniform(hh + 0.5, H - hh - 0.2)), hw, hh)
+        # sun outside the west wall (direction to the sun has x < 0), low enough to shine in
+        emitters.append(_sky(rng, exposure, (12, 45, 200, 340), sun=rng.random() < 0.75))
+    objs += _box_room(rng, W, D, H, wall, floor_mat, window)
+    if mode in (1, 2):
+        for _ in range(int(rng.integers(1, 3))):
+            parts, em = _lamp(rng, (float(rng.uniform(-W / 3, W / 3)), float(rng.uniform(-D / 3, D / 3))),
+                              exposure * (3.0 if mode == 1 else 1.0), hanging=rng.random() < 0.4, H=H)
+            objs += parts
+            emitters.append(em)
+    _furnish(rng, W, D, objs)
+    if rng.random() < 0.5:
+        objs.append(_clutter(rng, (float(rng.uniform(-0.5, 0.5)), float(rng.uniform(-0.5, 0.5))), 0.8, int(rng.integers(10, 40))))
+    cam = _room_camera(rng, W, D, H, look_from_window=True)
+    return {"name": f"interior-{seed}", "kind": "interior", "seed": seed, "camera": cam, "emitters": emitters,
+            "objects": objs, "exposure": round(exposure, 4)}
+
+
+def smalllights(seed: int) -> dict:
+    """Small, dim, partly occluded area lights (under shelves, behind panels) in a room."""
+    rng = np.random.default_rng(seed)
+    W, D, H = rng.uniform(3, 5), rng.uniform(3, 5), rng.uniform(2.4, 3.0)
+    exposure = _exposure(rng, 0.05, 0.8)
+    objs = _box_room(rng, W, D, H, _rgb(rng, 0.3, 0.8, 0.3), random_material(rng, False, 0.5)
+                     if rng.random() < 0.5 else _diffuse(_rgb(rng, 0.2, 0.7)))
+    emitters = []
+    for _ in range(int(rng.integers(1, 4))):
+        x, z = float(rng.uniform(-W / 3, W / 3)), float(rng.uniform(-D / 3, D / 3))
+        y = float(rng.uniform(0.4, H - 0.5))
+        s = float(rng.uniform(0.02, 0.1))
+        L = rng.uniform(0.5, 2.0) * exposure / (s * s)
+        emitters.append({"type": "rect", "center": [x, y, z], "normal": [0, -1, 0], "half": [s / 2, s / 2],
+                         "radiance": [round(L * c, 3) for c in _rgb(rng, 0.8, 1.0, 0.3)]})
+        # the occluder: a shelf just above (light only downwards) and a side panel
+        objs.append({"shape": "cube", "center": [x, y + 0.03, z], "half": [s * 3, 0.015, s * 3], "rot": [0, 0, 0],
+                     "material": random_material(rng, False)})
+        if rng.random() < 0.7:
+            side = float(rng.choice([-1, 1]))
+            objs.append({"shape": "cube", "center": [x + side * s * 1.5, y - 0.1, z], "half": [0.01, 0.12, s * 3],
+                         "rot": [0, 0, 0], "material": _diffuse(_rgb(rng, 0.2, 0.7))})
+    _furnish(rng, W, D, objs)
+    cam = _room_camera(rng, W, D, H, look_from_window=False)
+    return {"name": f"smalllights-{seed}", "kind": "smalllights", "seed": seed, "camera": cam,
+            "emitters": emitters, "objects": objs, "exposure": round(exposure, 4)}
+
+
+def emissive(seed: int) -> dict:
+    """Emissive objects (glowing spheres, cubes, neon tubes, disks) as the main light,
+    over a dim environment or in a dark room."""
+    rng = np.random.default_rng(seed)
+    exposure = _exposure(rng, 0.1, 1.0)
+    objs = [_rect("ground", [0, 0, 0], [0, 1, 0], [6, 6], {**_diffuse(_rgb(rng, 0.2, 0.7)), "texture": {**_texture(rng), "scale": 8.0}})]
+    emitters = []
+    if rng.random() < 0.5:
+        emitters.append(_sky(rng, exposure * 0.05, sun=False))
+    else:
+        objs += [_rect("back", [0, 2, -2.5], [0, 0, 1], [6, 2], _diffuse(_rgb(rng, 0.3, 0.7)))]
+    for x, z, sz in _place(rng, int(rng.integers(2, 5)), 1.5, (0.08, 0.3), 0.1):
+        L = [round(c * rng.uniform(2, 10) * exposure, 3) for c in _rgb(rng, 0.6, 1.0, rng.uniform(0.2, 0.9))]
+        kind = str(rng.choice(["sphere", "cube", "tube", "disk"]))
+        if kind == "sphere":
+            emitters.append({"type": "sphere", "center": [x, sz, z], "radius": sz, "radiance": L})
+        elif kind == "cube":
+            emitters.append({"type": "cube", "center": [x, sz, z], "half": [sz * 0.7] * 3, "rot": [0, float(rng.uniform(0, 90)), 0], "radiance": L})
+        elif kind == "tube":
+            h = float(rng.uniform(0.4, 1.2))
+            emitters.append({"type": "cylinder", "p0": [x, 0.05, z], "p1": [x + float(rng.uniform(-0.3, 0.3)), h, z], "radius": round(sz * 0.15, 4), "radiance": L})
+        else:
+            emitters.append({"type": "disk", "center": [x, sz + 0.3, z], "normal": [float(rng.uniform(-1, 1)), 0.3, float(rng.uniform(-1, 1))], "radius": sz, "radiance": L})
+    for x, z, sz in _place(rng, int(rng.integers(2, 6)), 1.8, (0.1, 0.35), 0.1, center=(0.3, 0.3)):
+        objs.append(_object(rng, (x, z), sz))
+    cam = _look_at_camera(rng, [0, 0.3, 0], float(rng.uniform(2.5, 4.5)), rng.uniform(35, 60), rng.uniform(8, 35), rng.uniform(-70, 70))
+    return {"name": f"emissive-{seed}", "kind": "emissive", "seed": seed, "camera": cam, "emitters": emitters, "objects": objs}
+
+
+def caustics(seed: int) -> dict:
+    """Caustics: glass objects and a water surface (a displaced dielectric sheet over a
+    pool floor) under a small light or the sun."""
+    rng = np.random.default_rng(seed)
+    exposure = _exposure(rng, 0.2, 1.0)
+    floor = {**_diffuse(_rgb(rng, 0.4, 0.9, 0.3)), "texture": {**_texture(rng), "scale": 6.0}}
+    objs = [_rect("floor", [0, 0, 0], [0, 1, 0], [4, 4], floor)]
+    emitters = []
+    if rng.random() < 0.5:
+        r = float(rng.uniform(0.02, 0.06))
+        emitters.append({"type": "sphere", "center": [float(rng.uniform(-1, 1)), float(rng.uniform(1.2, 2.2)), float(rng.uniform(-1, 1))],
+                         "radius": round(r, 4), "radiance": [round(c * exposure * 1.5 / (r * r), 3) for c in (1.0, 0.92, 0.8)]})
+        emitters.append(_sky(rng, exposure * 0.05, sun=False))
+    else:
+        emitters.append(_sky(rng, exposure * 0.3, (30, 70, 0, 360), sun=True))
+    if rng.random() < 0.5:  # water
+        objs.append({"shape": "heightfield", "seed": int(rng.integers(1 << 31)), "center": [0, float(rng.uniform(0.15, 0.4)), 0],
+                     "half": 1.2, "amplitude": round(float(rng.uniform(0.01, 0.05)), 4), "freq": round(float(rng.uniform(3, 10)), 3),
+                     "material": {"type": "dielectric", "ior": 1.33}})
+        for x, z, sz in _place(rng, int(rng.integers(1, 4)), 0.8, (0.05, 0.12), 0.05):
+            objs.append(_object(rng, (x, z), sz, allow_glass=False))
+    for x, z, sz in _place(rng, int(rng.integers(2, 5)), 1.2, (0.12, 0.35), 0.08, center=(0.0, 0.6)):
+        o = _object(rng, (x, z), sz, shapes=["sphere", "dsphere", "torus", "cube"])
+        o["material"] = {"type": str(rng.choice(["dielectric", "dielectric", "roughdielectric"])), "ior": round(float(rng.uniform(1.3, 1.8)), 3),
+                         "alpha": round(float(rng.uniform(0.02, 0.2)), 3)}
+        objs.append(o)
+    cam = _look_at_camera(rng, [0, 0.2, 0.3], float(rng.uniform(2.0, 3.5)), rng.uniform(30, 55), rng.uniform(20, 55), rng.uniform(-60, 60))
+    return {"name": f"caustics-{seed}", "kind": "caustics", "seed": seed, "camera": cam, "emitters": emitters, "objects": objs}
+
+
+def metals(seed: int) -> dict:
+    """Smooth and rough metals reflecting small lights, emissive panels and the sky."""
+    rng = np.random.default_rng(seed)
+    exposure = _exposure(rng, 0.2, 1.0)
+    objs = [_rect("floor", [0, 0, 0], [0, 1, 0], [4, 4], random_material(rng, False, 0.5)),
+            _rect("back", [0, 1.5, -1.8], [0, 0, 1], [4, 1.5], _diffuse(_rgb(rng, 0.1, 0.5)))]
+    emitters = [_sky(rng, exposure * 0.3, sun=rng.random() < 0.4)]
+    for _ in range(int(rng.integers(1, 4))):
+        r = float(rng.uniform(0.01, 0.05))
+        emitters.append({"type": "sphere", "center": [float(rng.uniform(-1.5, 1.5)), float(rng.uniform(0.5, 2.0)), float(rng.uniform(-1.2, 1.5))],
+                         "radius": round(r, 4), "radiance": [round(c * exposure * rng.uniform(0.5, 3) / (r * r), 3) for c in _rgb(rng, 0.8, 1.0, 0.3)]})
+    if rng.random() < 0.6:
+        emitters.append({"type": "rect", "center": [float(rng.uniform(-1, 1)), float(rng.uniform(1.0, 2.0)), -1.75], "normal": [0, 0, 1],
+                         "half": [float(rng.uniform(0.1, 0.5)), float(rng.uniform(0.03, 0.2))], "radiance": [round(8 * exposure, 3)] * 3})
+    for x, z, sz in _place(rng, int(rng.integers(3, 7)), 1.3, (0.12, 0.4), 0.08):
+        o = _object(rng, (x, z), sz, shapes=["sphere", "dsphere", "torus", "cube", "cylinder"])
+        smooth = rng.random() < 0.4
+        o["material"] = {"type": "conductor" if smooth else "roughconductor", "material": str(rng.choice(CONDUCTORS)),
+                         "alpha": round(float(np.exp(rng.uniform(np.log(0.01), np.log(0.4)))), 4)}
+        objs.append(o)
+    cam = _look_at_camera(rng, [0, 0.3, 0], float(rng.uniform(2.0, 4.0)), rng.uniform(30, 60), rng.uniform(8, 40), rng.uniform(-50, 50))
+    return {"name": f"metals-{seed}", "kind": "metals", "seed": seed, "camera": cam, "emitters": emitters, "objects": objs}
+
+
+def dof(seed: int) -> dict:
+    """Depth of field: a wide thin-lens aperture focused on a near object, with small
+    bright highlights far behind it (bokeh)."""
+    spec = open_scene(seed) if np.random.default_rng([seed, 3]).random() < 0.5 else room(seed)
+    rng = np.random.default_rng([seed, 11])
+    cam = spec["camera"]
+    o, t = np.asarray(cam["origin"]), np.asarray(cam["target"])
+    dist = float(np.linalg.norm(t - o))
+    cam["focus"] = round(dist * float(rng.uniform(0.4, 1.0)), 4)
+    cam["aperture"] = round(float(rng.uniform(0.03, 0.12)) * dist / 3.0, 4)
+    spec.update(name=f"dof-{seed}", kind="dof", seed=seed)
+    return spec
+
+
+def thin(seed: int) -> dict:
+    """Thin geometry: grass or fur as curves, hanging wires, foliage (leaf-shaped cards)."""
+    rng = np.random.default_rng(seed)
+    exposure = _exposure(rng, 0.2, 1.0)
+    objs = [_rect("ground", [0, 0, 0], [0, 1, 0], [6, 6], {**_diffuse(_rgb(rng, 0.1, 0.4)), "texture": {**_texture(rng), "scale": 20.0}})]
+    emitters = [_sky(rng, exposure, (15, 60, 0, 360), sun=rng.random() < 0.7)]
+    if rng.random() < 0.4:
+        r = float(rng.uniform(0.02, 0.05))
+        emitters.append({"type": "sphere", "center": [float(rng.uniform(-1, 1)), float(rng.uniform(1, 2)), float(rng.uniform(-1, 1))],
+                         "radius": round(r, 4), "radiance": [round(c * exposure / (r * r), 3) for c in (1.0, 0.9, 0.7)]})
+    # grass/fur: clumps of curved strands
+    strands = []
+    for _ in range(int(rng.integers(2, 6))):
+        cx, cz = float(rng.uniform(-1.2, 1.2)), float(rng.uniform(-1.2, 1.2))
+        rad, n = float(rng.uniform(0.1, 0.5)), int(rng.integers(150, 600))
+        h = float(rng.uniform(0.1, 0.5))
+        for _ in range(n):
+            a, r = rng.uniform(0, 2 * np.pi), rad * np.sqrt(rng.random())
+            x, z = cx + r * np.cos(a), cz + r * np.sin(a)
+            hh = h * rng.uniform(0.6, 1.2)
+            bend = rng.normal(size=2) * hh * 0.3
+            w = float(rng.uniform(0.001, 0.003))
+            strands.append([[round(x + bend[0] * (k / 3) ** 2, 4), round(hh * k / 3, 4), round(z + bend[1] * (k / 3) ** 2, 4),
+                             round(w * (1 - 0.8 * k / 3), 5)] for k in range(4)])
+    objs.append({"shape": "curves", "strands": strands, "material": _diffuse(_rgb(rng, 0.15, 0.6, rng.uniform(0.3, 0.8)))})
+    # wires between poles
+    for _ in range(int(rng.integers(1, 4))):
+        y = float(rng.uniform(0.6, 1.8))
+        p0 = [float(rng.uniform(-2, -0.5)), y, float(rng.uniform(-1.5, 1.5))]
+        p1 = [float(rng.uniform(0.5, 2)), y + float(rng.uniform(-0.3, 0.3)), float(rng.uniform(-1.5, 1.5))]
+        sag = float(rng.uniform(0.05, 0.3))
+        pts = [[round(p0[0] + (p1[0] - p0[0]) * t, 4), round(p0[1] + (p1[1] - p0[1]) * t - 4 * sag * t * (1 - t), 4),
+                round(p0[2] + (p1[2] - p0[2]) * t, 4), 0.004] for t in np.linspace(0, 1, 12)]
+        objs.append({"shape": "curves", "strands": [pts], "material": random_material(rng, False, 0.0)})
+    # foliage
+    for _ in range(int(rng.integers(1, 4))):
+        objs.append({"shape": "leaves", "seed": int(rng.integers(1 << 31)), "center": [float(rng.uniform(-1, 1)), float(rng.uniform(0.4, 1.4)), float(rng.uniform(-1, 1))],
+                     "count": int(rng.integers(30, 120)), "size": round(float(rng.uniform(0.04, 0.1)), 3), "spread": round(float(rng.uniform(0.1, 0.3)), 3),
+                     "material": _diffuse(_rgb(rng, 0.1, 0.5, rng.uniform(0.4, 0.9)))})
+    for x, z, sz in _place(rng, int(rng.integers(1, 4)), 1.5, (0.1, 0.3), 0.1):
+        objs.append(_object(rng, (x, z), sz))
+    cam = _look_at_camera(rng, [0, 0.4, 0], float(rng.uniform(1.5, 3.5)), rng.uniform(30, 60), rng.uniform(5, 35), rng.uniform(0, 360))
+    return {"name": f"thin-{seed}", "kind": "thin", "seed": seed, "camera": cam, "emitters": emitters, "objects": objs}
+
+
+def textures_family(seed: int) -> dict:
+    """High-frequency textures (fine checkers, text, noise), bump and normal maps, rough
+    metals and rough dielectrics."""
+    rng = np.random.default_rng(seed)
+    exposure = _exposure(rng, 0.2, 1.0)
+
+    def hf_texture():
+        return {"pattern": str(rng.choice(textures.PATTERNS_HF)), "seed": int(rng.integers(1 << 31)),
+                "c0": _rgb(rng, 0.02, 0.4), "c1": _rgb(rng, 0.5, 0.9), "scale": float(rng.choice([1, 2, 4, 8]))}
+
+    def bump():
+        return {"pattern": str(rng.choice(["noise", "voronoi", "stripes", "finechecker"])), "seed": int(rng.integers(1 << 31)),
+                "scale": float(rng.choice([2, 4, 8])), "strength": round(float(rng.uniform(0.2, 1.0)), 3),
+                "kind": str(rng.choice(["bump", "normal"]))}
+
+    floor = {"type": str(rng.choice(["diffuse", "roughplastic"])), "color": [0.5, 0.5, 0.5], "alpha": 0.2, "texture": hf_texture()}
+    floor["texture"]["scale"] = float(rng.choice([6, 12, 20]))
+    objs = [_rect("floor", [0, 0, 0], [0, 1, 0], [4, 4], floor),
+            _rect("back", [0, 1.5, -1.6], [0, 0, 1], [4, 1.5], {"type": "diffuse", "color": [0.5] * 3, "texture": hf_texture()})]
+    if rng.random() < 0.6:
+        objs[0]["material"]["bump"] = bump()
+    emitters = [_sky(rng, exposure * 0.6, sun=rng.random() < 0.6)]
+    if rng.random() < 0.6:
+        s = float(rng.uniform(0.2, 0.6))
+        emitters.append({"type": "rect", "center": [float(rng.uniform(-1, 1)), 2.2, float(rng.uniform(-0.5, 1))], "normal": [0, -1, 0],
+                         "half": [s / 2, s / 2], "radiance": [round(c * exposure * 6 / s, 3) for c in (1.0, 0.95, 0.85)]})
+    for x, z, sz in _place(rng, int(rng.integers(3, 7)), 1.3, (0.12, 0.4), 0.08):
+        o = _object(rng, (x, z), sz, shapes=["sphere", "cube", "sphere", "cube", "torus"])
+        k = rng.random()
+        if k < 0.35:
+            o["material"] = {"type": "roughconductor", "material": str(rng.choice(CONDUCTORS)), "alpha": round(float(rng.uniform(0.05, 0.5)), 3)}
+        elif k < 0.55:
+            o["material"] = {"type": "roughdielectric", "ior": round(float(rng.uniform(1.3, 1.8)), 3), "alpha": round(float(rng.uniform(0.05, 0.4)), 3)}
+        else:
+            o["material"] = {"type": str(rng.choice(["diffuse", "roughplastic"])), "color": [0.5] * 3, "alpha": round(float(rng.uniform(0.05, 0.3)), 3),
+                             "texture": hf_texture()}
+        if o["material"]["type"] != "roughdielectric" and rng.random() < 0.5 and o["shape"] in ("sphere", "cube"):
+            o["material"]["bump"] = bump()
+        objs.append(o)
+    cam = _look_at_camera(rng, [0, 0.3, 0], float(rng.uniform(1.8, 3.5)), rng.uniform(30, 60), rng.uniform(10, 40), rng.uniform(-50, 50))
+    return {"name": f"textures-{seed}", "kind": "textures", "seed": seed, "camera": cam, "emitters": emitters, "objects": objs}
+
+
+#: Scene families, each a function of the seed; `generate` draws one when none is given.
+FAMILIES = {"cornell": lambda s: cornell(s), "room": lambda s: room(s), "open": lambda s: open_scene(s),
+            "interior": lambda s: interior(s), "smalllights": lambda s: smalllights(s),
+            "emissive": lambda s: emissive(s), "caustics": lambda s: caustics(s), "metals": lambda s: metals(s),
+            "dof": lambda s: dof(s), "thin": lambda s: thin(s), "textures": lambda s: textures_family(s)}
+
+
 def generate(seed: int, kind: str | None = None) -> dict:
-    """The scene spec of a seed; `kind` is drawn from the seed when not given."""
+    """The scene spec of a seed; the family `kind` is drawn from the seed (uniformly over
+    all families) when not given."""
     if kind is None:
         kind = KINDS[int(np.random.default_rng([seed, 7]).integers(len(KINDS)))]
-    return {"cornell": cornell, "room": room, "open": open_scene}[kind](seed)
+    if kind not in FAMILIES:
+        raise ValueError(f"unknown scene family {kind!r}; families: {', '.join(KINDS)}")
+    return FAMILIES[kind](seed)
 
 
 def shadow_test() -> dict:
@@ -374,7 +718,30 @@ def _bitmap_texture(tex, size=256):
 
 
 def _material(m):
-    """Mitsuba BSDF dict of a material spec (double-sided except dielectrics)."""
+    """Mitsuba BSDF dict of a material spec (double-sided except dielectrics), wrapped in a
+    bump or normal map when the spec has `bump`."""
+    b = _material_base(m)
+    if "bump" not in m:
+        return b
+    bm = m["bump"]
+    p = textures.pattern_2d(bm["pattern"], bm["seed"], 256)
+    k = bm.get("scale", 1.0)
+    import mitsuba as mi
+
+    to_uv = mi.ScalarTransform4f().scale([k, k, 1])
+    if bm.get("kind", "bump") == "normal":
+        gy, gx = np.gradient(p)
+        n = np.stack([-gx * bm["strength"] * 8, -gy * bm["strength"] * 8, np.ones_like(p)], -1)
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        tex = {"type": "bitmap", "bitmap": mi.Bitmap((0.5 * n + 0.5).astype(np.float32)), "raw": True,
+               "wrap_mode": "repeat", "to_uv": to_uv}
+        return {"type": "normalmap", "normalmap": tex, "bsdf": b}
+    tex = {"type": "bitmap", "bitmap": mi.Bitmap(p.astype(np.float32)[..., None]), "raw": True, "wrap_mode": "repeat",
+           "to_uv": to_uv}
+    return {"type": "bumpmap", "arbitrary": tex, "scale": float(bm["strength"]) * 0.01, "bsdf": b}
+
+
+def _material_base(m):
     import mitsuba as mi
 
     t = m["type"]
@@ -464,6 +831,22 @@ def _shape_dicts(o, key):
         if vp:
             colors = textures.colorize(textures.pattern_3d(vp["pattern"], P, vp["seed"]), vp["c0"], vp["c1"])
         return {key: meshes.to_mitsuba(P, F, key, mi.load_dict(bsdf), colors)}
+    if sh == "heightfield":
+        P, F = meshes.heightfield(o["seed"], o["half"], o["amplitude"], o["freq"])
+        P = P + np.asarray(o["center"])
+        return {key: meshes.to_mitsuba(P, F, key, mi.load_dict(bsdf))}
+    if sh == "leaves":
+        P, F = meshes.leaf_cards(np.random.default_rng(o["seed"]), o["center"], o["count"], o["size"], o["spread"])
+        return {key: meshes.to_mitsuba(P, F, key, mi.load_dict(bsdf))}
+    if sh == "curves":
+        # Mitsuba reads curves from a file: one control point "x y z radius" per line,
+        # curves separated by empty lines
+        fd, path = tempfile.mkstemp(suffix=".txt", prefix="mcdenoise-curves-")
+        with os.fdopen(fd, "w") as f:
+            f.write("\n\n".join("\n".join(" ".join(repr(float(v)) for v in p) for p in st) for st in o["strands"]))
+            f.write("\n")
+        _TEMP_FILES.append(path)
+        return {key: {"type": "linearcurve", "filename": path, "bsdf": bsdf}}
     if sh == "clutter":
         group = {"type": "shapegroup"}
         for i, g in enumerate(o["group"]):
@@ -522,6 +905,16 @@ def _emitter_dicts(e, key):
     if e["type"] == "sphere":
         return {key: {"type": "sphere", "center": e["center"], "radius": e["radius"], "bsdf": black,
                       "emitter": {"type": "area", "radiance": {"type": "rgb", "value": e["radiance"]}}}}
+    if e["type"] == "cube":
+        return {key: {"type": "cube", "to_world": _affine(_rot_matrix(e.get("rot", [0, 0, 0])), e["center"], e["half"]),
+                      "bsdf": black, "emitter": {"type": "area", "radiance": {"type": "rgb", "value": e["radiance"]}}}}
+    if e["type"] == "cylinder":
+        return {key: {"type": "cylinder", "p0": e["p0"], "p1": e["p1"], "radius": e["radius"], "bsdf": black,
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": e["radiance"]}}}}
+    if e["type"] == "disk":
+        R = _frame_for_normal(e["normal"])
+        return {key: {"type": "disk", "to_world": _affine(R, e["center"], [e["radius"]] * 2 + [1]), "bsdf": black,
+                      "emitter": {"type": "area", "radiance": {"type": "rgb", "value": e["radiance"]}}}}
     if e["type"] == "env":
         return {key: {"type": "envmap", "bitmap": mi.Bitmap(_env_bitmap(e))}}
     raise ValueError(f"unknown emitter {e['type']!r}")
@@ -544,7 +937,11 @@ def build(spec: dict, width: int, height: int):
         d.update(_shape_dicts(o, f"o{i}"))
     for i, e in enumerate(spec["emitters"]):
         d.update(_emitter_dicts(e, f"e{i}"))
-    return mi.load_dict(d)
+    try:
+        return mi.load_dict(d)
+    finally:
+        while _TEMP_FILES:
+            os.unlink(_TEMP_FILES.pop())
 
 
 def camera_params(spec: dict, width: int) -> dict:

@@ -77,7 +77,34 @@ def dots(rng: np.random.Generator, size: int, n: int) -> np.ndarray:
     return (((x % 1 - 0.5) ** 2 + (y % 1 - 0.5) ** 2) < r * r).astype(np.float64)
 
 
+def text(rng: np.random.Generator, size: int, rows: int) -> np.ndarray:
+    """Text-like high-frequency pattern: rows of 'words' made of glyph-like strokes."""
+    img = np.zeros((size, size))
+    lh = size // rows
+    for r in range(rows):
+        y0 = r * lh + lh // 5
+        gh = max(2, int(lh * 0.55))
+        x = int(rng.integers(0, lh))
+        while x < size - 4:
+            for _ in range(int(rng.integers(2, 9))):  # one word
+                gw = max(2, int(gh * rng.uniform(0.4, 0.8)))
+                if x + gw >= size:
+                    break
+                for _ in range(int(rng.integers(2, 4))):  # strokes of one glyph
+                    if rng.random() < 0.5:  # vertical
+                        cx = x + int(rng.integers(0, gw))
+                        img[y0:y0 + gh, cx:cx + max(1, gw // 4)] = 1.0
+                    else:  # horizontal
+                        cy = y0 + int(rng.integers(0, gh))
+                        img[cy:cy + max(1, gh // 6), x:x + gw] = 1.0
+                x += gw + max(1, gw // 3)
+            x += int(gh * rng.uniform(0.6, 1.2))
+    return img
+
+
 PATTERNS_2D = ("noise", "checker", "stripes", "voronoi", "marble", "dots")
+#: High-frequency patterns (fine checkers, text) for the `textures` family.
+PATTERNS_HF = ("finechecker", "text", "noise", "stripes")
 
 
 def pattern_2d(kind: str, seed: int, size: int = 256) -> np.ndarray:
@@ -94,6 +121,10 @@ def pattern_2d(kind: str, seed: int, size: int = 256) -> np.ndarray:
         return marble(rng, size)
     if kind == "dots":
         return dots(rng, size, int(rng.integers(3, 12)))
+    if kind == "finechecker":
+        return checker(size, int(rng.integers(12, 33)) * 2)
+    if kind == "text":
+        return text(rng, size, int(rng.integers(8, 20)))
     raise ValueError(f"unknown pattern {kind!r}")
 
 
