@@ -78,9 +78,10 @@ train: build
 
 ## Quality (docs/results.md): the noisy input, both shipped variants and OIDN on the
 ## validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
-## and sample count, with plots and side-by-side crops.
+## and sample count, with plots and side-by-side crops, and the firefly check (20 injected
+## outliers per frame, with and without the handling; docs/fireflies.md).
 TEST_DATA ?= data-test
-EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --oidn --crops 4
+EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --oidn --crops 4 --outliers 20
 eval: build
 	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
 	  --out $(CURDIR)/docs/results/val

@@ -432,6 +432,19 @@ async fn fireflies_are_counted_per_job_and_on_metrics() {
     let pb = job.fireflies.unwrap();
     assert_eq!((pb.mode.as_str(), pb.strength, pb.handled, pb.diffuse), ("auto", 1.5, 3, 3));
 
+    // Options over gRPC: `off` per job; the job reports it.
+    use mcdenoise::grpc::pb;
+    let path = write(dir.path(), "outliers.exr", &exr);
+    let options = pb::JobOptions { fireflies: pb::FireflyMode::Off as i32, ..Default::default() };
+    let upload = mcdenoise::client::upload_stream(options, &path, None, 1 << 20).await.unwrap();
+    let job = client.submit_job(upload).await.unwrap().into_inner();
+    let done = d.wait_state(&job.id, "succeeded").await;
+    assert_eq!((done["fireflies"]["mode"].as_str(), done["fireflies"]["handled"].as_u64()), (Some("off"), Some(0)));
+    let options = pb::JobOptions { firefly_strength: 20.0, ..Default::default() };
+    let upload = mcdenoise::client::upload_stream(options, &path, None, 1 << 20).await.unwrap();
+    let err = client.submit_job(upload).await.unwrap_err();
+    assert_eq!(err.code(), tonic::Code::InvalidArgument, "{err:?}");
+
     for bad in ["firefly_strength=50", "firefly_strength=0", "fireflies=sometimes"] {
         let (status, err) = d.submit(&exr, bad, &[]).await;
         assert_eq!(status, StatusCode::BAD_REQUEST, "{bad}: {err}");
