@@ -242,6 +242,18 @@ def test_dataset_workers_share_one_manifest(tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 3
 
 
+def test_dataset_time_limit_and_bad_arguments(tmp_path):
+    args = ["--out", str(tmp_path), "--scenes", "3", "--test-scenes", "1", "--size", "8", "--spp", "2",
+            "--ref-spp", "4", "--no-progress", "--max-minutes", "0"]
+    assert dataset.main(args) == 0  # the deadline has passed before the first scene
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert (s["rendered"], s["not_started"]) == (0, 4)
+    for bad in (["--families", "cornell,nosuch"], ["--workers", "0"], ["--seed-base", str(dataset.TEST_SEED_BASE)],
+                ["--spp", "0,4"], ["--renderer", "cycles", "--frames", "ref"]):
+        with pytest.raises(SystemExit):
+            dataset.parse_args(["--out", str(tmp_path)] + bad)
+
+
 def test_half_precision_frames(cornell, tmp_path):
     import OpenEXR
 
