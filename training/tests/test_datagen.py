@@ -356,3 +356,20 @@ def test_dataset_cli_both_renderers(tmp_path):
         assert meta["spp"] == (16 if k == "ref" else int(k))
     assert dataset.main(args) == 0  # resumes: both complete
     assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2
+
+
+def test_engine_reads_half_frames(cornell, tmp_path):
+    import os
+    import subprocess
+
+    binary = os.environ.get("MCDENOISE_BIN") or str(REPO / "target" / "release" / "mcdenoise")
+    if not Path(binary).is_file():
+        pytest.skip("needs the engine (make build)")
+    for name, m in (("noisy", cornell[0]), ("ref", cornell[1])):
+        ch, meta = render.frame_channels(m)
+        exr_io.write_frame(tmp_path / f"{name}.exr", ch, meta, precision="half")
+    r = subprocess.run([binary, "preprocess", str(tmp_path / "noisy.exr"), "--reference", str(tmp_path / "ref.exr"),
+                        "-o", str(tmp_path / "p.npz")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    z = np.load(tmp_path / "p.npz")
+    assert int(z["variant"]) == 1 and z["features"].shape[1:] == (48, 48) and np.isfinite(z["features"]).all()
