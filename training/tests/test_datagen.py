@@ -242,6 +242,18 @@ def test_dataset_workers_share_one_manifest(tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 3
 
 
+def test_dataset_time_limit_and_bad_arguments(tmp_path):
+    args = ["--out", str(tmp_path), "--scenes", "3", "--test-scenes", "1", "--size", "8", "--spp", "2",
+            "--ref-spp", "4", "--no-progress", "--max-minutes", "0"]
+    assert dataset.main(args) == 0  # the deadline has passed before the first scene
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert (s["rendered"], s["not_started"]) == (0, 4)
+    for bad in (["--families", "cornell,nosuch"], ["--workers", "0"], ["--seed-base", str(dataset.TEST_SEED_BASE)],
+                ["--spp", "0,4"], ["--renderer", "cycles", "--frames", "ref"]):
+        with pytest.raises(SystemExit):
+            dataset.parse_args(["--out", str(tmp_path)] + bad)
+
+
 def test_half_precision_frames(cornell, tmp_path):
     import OpenEXR
 
@@ -344,3 +356,20 @@ def test_dataset_cli_both_renderers(tmp_path):
         assert meta["spp"] == (16 if k == "ref" else int(k))
     assert dataset.main(args) == 0  # resumes: both complete
     assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2
+
+
+def test_engine_reads_half_frames(cornell, tmp_path):
+    import os
+    import subprocess
+
+    binary = os.environ.get("MCDENOISE_BIN") or str(REPO / "target" / "release" / "mcdenoise")
+    if not Path(binary).is_file():
+        pytest.skip("needs the engine (make build)")
+    for name, m in (("noisy", cornell[0]), ("ref", cornell[1])):
+        ch, meta = render.frame_channels(m)
+        exr_io.write_frame(tmp_path / f"{name}.exr", ch, meta, precision="half")
+    r = subprocess.run([binary, "preprocess", str(tmp_path / "noisy.exr"), "--reference", str(tmp_path / "ref.exr"),
+                        "-o", str(tmp_path / "p.npz")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    z = np.load(tmp_path / "p.npz")
+    assert int(z["variant"]) == 1 and z["features"].shape[1:] == (48, 48) and np.isfinite(z["features"]).all()

@@ -408,7 +408,7 @@ def _work(worker: int, args, progress_q=None) -> dict:
     covariance = not args.no_covariance
     opts = Options(max_depth=args.max_depth, covariance=covariance)
     expect = exr_io.CHANNELS if covariance else exr_io.CHANNELS_NOCOV
-    deadline = time.time() + 60.0 * args.max_minutes if args.max_minutes else None
+    deadline = args.deadline
     done = {}
     for d in {args.out, args.test_out} - {None}:
         done[d] = {(r["scene"], r["width"], r["height"], tuple(r["spp"]), r["ref_spp"])
@@ -512,6 +512,8 @@ def summarize(args, results: list[dict], wall: float, variant: str) -> dict:
 
 def main(argv=None) -> int:
     args = parse_args(argv)
+    # the time limit counts from the command's start, for every worker
+    args.deadline = time.time() + 60.0 * args.max_minutes if args.max_minutes is not None else None
     from tqdm import tqdm
 
     for d, test in ((args.out, False), (args.test_out, True)):

@@ -52,6 +52,7 @@ def main(argv=None) -> int:
     p.add_argument("--only", choices=("all", "families"), default="all")
     p.add_argument("--families", default=None, help="families of the contact sheet (default: all)")
     p.add_argument("--seed", type=int, default=1, help="seed of each family's scene on the contact sheet")
+    p.add_argument("--renderer", choices=("mitsuba", "cycles"), default="mitsuba", help="renderer of the contact sheet")
     args = p.parse_args(argv)
     set_variant()
     import matplotlib
@@ -65,7 +66,8 @@ def main(argv=None) -> int:
     S = args.size
     if args.only == "families":
         families = args.families.split(",") if args.families else list(scenes.KINDS)
-        contact_sheet(plt, families, args.seed, 128, 16, args.spp, args.out / "datagen-families.png")
+        name = "datagen-families.png" if args.renderer == "mitsuba" else "datagen-families-cycles.png"
+        contact_sheet(plt, families, args.seed, 128, 16, args.spp, args.out / name, args.renderer)
         return 0
 
     # colour next to covariance
@@ -135,21 +137,25 @@ def main(argv=None) -> int:
     return 0
 
 
-def contact_sheet(plt, families, seed, size, spp, ref_spp, path):
+def contact_sheet(plt, families, seed, size, spp, ref_spp, path, renderer="mitsuba"):
     """One row per family: noisy input, reference (both exposed by the same factor, from
-    the reference), albedo, normal, covariance (of the noisy frame)."""
-    from . import scenes
+    the reference), albedo, normal, covariance (of the noisy frame; Mitsuba only)."""
+    from . import cycles, scenes
 
-    cols = ("noisy", "reference", "albedo", "normal", "covariance")
+    cols = ("noisy", "reference", "albedo", "normal") + (("covariance",) if renderer == "mitsuba" else ())
     fig, ax = plt.subplots(len(families), len(cols), figsize=(2.0 * len(cols), 2.1 * len(families)), squeeze=False)
     for r, fam in enumerate(families):
         spec = scenes.generate(seed, fam)
-        noisy, _ = _render(spec, size, size, spp, seed=1)
-        ref, _ = _render(spec, size, size, ref_spp, seed=1 << 20)
+        if renderer == "cycles":
+            res, _ = cycles.render_frames(spec, size, size, [spp], ref_spp, seed)
+            noisy, ref = res[spp][0], res["ref"][0]
+        else:
+            noisy, _ = _render(spec, size, size, spp, seed=1)
+            ref, _ = _render(spec, size, size, ref_spp, seed=1 << 20)
         lum = 0.2126 * ref["R"] + 0.7152 * ref["G"] + 0.0722 * ref["B"]
         k = 0.5 / max(float(np.percentile(lum, 90)), 1e-6)
         panels = [tonemap(k * _rgb(noisy)), tonemap(k * _rgb(ref)), np.clip(_rgb(noisy, "albedo"), 0, 1),
-                  np.clip(_rgb(noisy, "normal") * 0.5 + 0.5, 0, 1), noisy["covariance"]]
+                  np.clip(_rgb(noisy, "normal") * 0.5 + 0.5, 0, 1)] + ([noisy["covariance"]] if "covariance" in noisy else [])
         for c, img in enumerate(panels):
             ax[r, c].imshow(img, cmap="inferno" if img.ndim == 2 else None, vmin=0, vmax=1)
             ax[r, c].set_xticks([])

@@ -1,10 +1,13 @@
 """Sample accumulation, variances of the per-pixel mean, and frame assembly.
 
-Samples are drawn in passes (kernel launches) with Mitsuba's `independent` sampler, each
-pass seeded differently, so every sample of every pixel is independent of every other.
-Per pixel and channel the passes accumulate the count n, the sum and the sum of squares
-(per pass in float32 on the device, combined across passes in float64 with Chan's
-formula), and the variance of the per-pixel mean is the per-sample estimator
+A frame's samples are rendered in as few kernel launches as memory allows (usually one):
+the samples of every pixel are split into chunks, each lane of the launch is one
+(chunk, pixel) pair and loops over its chunk's samples inside the kernel (a symbolic loop
+around the path tracer's), keeping the running mean and M2 of every accumulated value in
+float32 (Welford's update). Samples are independent: Mitsuba's `independent` sampler gives
+every lane its own random stream, every launch its own seed. Chunks are combined on the
+host in float64 (Chan's formula), and the variance of the per-pixel mean is the per-sample
+estimator
 
     Var[mean] = s^2 / n,   s^2 = sum (x_i - mean)^2 / (n - 1).
 
@@ -17,9 +20,11 @@ feature l with weights E (integrator.py); its variance follows from the moments 
 and E + E l by the delta method (`Moments.cov_mean_and_var`). Per frame it is divided by
 its maximum (the paper's per-frame scaling to [0, 1]); the scale goes into the metadata.
 
-`render_ladder` renders the noisy frames of a scene as a nested progression (the frame
-at 8 spp is the frame at 4 spp plus 4 more samples), and `render` a single frame (the
-reference, from its own, disjoint seeds).
+`render_ladder` renders all noisy frames of a scene in one launch as a nested progression
+(segments [0, s1), [s1, s2), ... of each pixel's samples; the frame at 8 spp is the frame at
+4 spp plus 4 more samples), and `render` a single frame (the reference, from its own seed).
+Per-scene values reach the kernel as opaque variables (integrator.Camera), so a new seed,
+sample count or chunk table reuses the compiled kernel.
 """
 
 from __future__ import annotations
