@@ -81,12 +81,15 @@ train: build
 ## and sample count, with plots and side-by-side crops, and the firefly check (20 injected
 ## outliers per frame, with and without the handling; docs/fireflies.md).
 TEST_DATA ?= data-test
+# The data generator's test sets (--test-scenes) carry split `test`; older sets `val`.
+TEST_SPLIT ?= test
+TEST_OUT ?= test-families
 EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --oidn --crops 4 --outliers 20
 eval: build
 	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
 	  --out $(CURDIR)/docs/results/val
 	if [ -f $(TEST_DATA)/manifest.jsonl ]; then cd training && $(PY) -m mcdenoise_train.evaluate \
-	  --data $(abspath $(TEST_DATA)) --split val $(EVAL_METHODS) --out $(CURDIR)/docs/results/test; fi
+	  --data $(abspath $(TEST_DATA)) --split $(TEST_SPLIT) $(EVAL_METHODS) --out $(CURDIR)/docs/results/$(TEST_OUT); fi
 	$(PY) benches/report.py
 
 ## Speed (docs/results.md): GEMM ceiling, ONNX Runtime alone, the engine's stages, the
