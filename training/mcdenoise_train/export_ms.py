@@ -30,7 +30,7 @@ import torch
 
 from .contract import COLOR_CHANNELS, FEATURES_FULL, NOCOV_INDICES, feature_names, variant_for
 from .export import read_metadata as read_metadata_v2
-from .msnet import DEFAULT, MSNet
+from .msnet import MSNet, add_shape_arguments, from_arguments
 
 CONTRACT = 2
 OPSET = 17
@@ -171,20 +171,13 @@ def main(argv=None) -> int:
     p.add_argument("--out", required=True, help="models directory (writes OUT/<variant>/model.onnx)")
     p.add_argument("--variants", default="full,nocov")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--ext-width", type=int, default=DEFAULT["ext_width"])
-    p.add_argument("--ext-blocks", type=int, default=DEFAULT["ext_blocks"])
-    p.add_argument("--enc", default=",".join(map(str, DEFAULT["enc"])))
-    p.add_argument("--dec", default=",".join(map(str, DEFAULT["dec"])))
-    p.add_argument("--kernel-size", type=int, default=DEFAULT["kernel_size"])
-    p.add_argument("--levels", type=int, default=DEFAULT["levels"])
+    add_shape_arguments(p)
     p.add_argument("--head-gain", type=float, default=1.0, help="scale of the heads' weights (random models)")
     a = p.parse_args(argv)
     variants = [v for v in a.variants.split(",") if v]
     if a.random:
         torch.manual_seed(a.seed)
-        net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
-                    enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
-                    kernel_size=a.kernel_size, levels=a.levels).eval()
+        net = from_arguments(a, len(FEATURES_FULL)).eval()
         if a.head_gain != 1.0:
             with torch.no_grad():
                 for h in [*net.kernel_heads, *net.blend_heads]:

@@ -215,6 +215,23 @@ class MSNet(nn.Module):
         )
 
 
+def add_shape_arguments(parser) -> None:
+    """The command-line options of an `MSNet`'s shape (defaults: `DEFAULT`)."""
+    parser.add_argument("--ext-width", type=int, default=DEFAULT["ext_width"])
+    parser.add_argument("--ext-blocks", type=int, default=DEFAULT["ext_blocks"])
+    parser.add_argument("--enc", default=",".join(map(str, DEFAULT["enc"])), help="encoder widths, levels 1 … L-1")
+    parser.add_argument("--dec", default=",".join(map(str, DEFAULT["dec"])), help="decoder widths, levels 0 … L-2")
+    parser.add_argument("--kernel-size", type=int, default=DEFAULT["kernel_size"])
+    parser.add_argument("--levels", type=int, default=DEFAULT["levels"])
+
+
+def from_arguments(a, in_features: int) -> MSNet:
+    """A fresh `MSNet` of the shape given by `add_shape_arguments`' options."""
+    return MSNet(in_features=in_features, ext_width=a.ext_width, ext_blocks=a.ext_blocks,
+                 enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
+                 kernel_size=a.kernel_size, levels=a.levels)
+
+
 def pad_to_multiple(x: torch.Tensor, m: int) -> torch.Tensor:
     """Replicates the last row and column of `x [N,C,H,W]` up to multiples of `m` (as the
     engine does before inference)."""
@@ -225,4 +242,4 @@ def pad_to_multiple(x: torch.Tensor, m: int) -> torch.Tensor:
     return F.pad(x, (0, pw, 0, ph), mode="replicate")
 
 
-__all__ = ["DEFAULT", "MSNet", "pad_to_multiple"]
+__all__ = ["DEFAULT", "MSNet", "add_shape_arguments", "from_arguments", "pad_to_multiple"]

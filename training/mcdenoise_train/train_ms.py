@@ -39,7 +39,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from . import losses
@@ -48,8 +47,8 @@ from .data import read_manifest
 from .frames import read_exr
 from .checkpoint import save_checkpoint
 from .model import DenoiserNet, paper_config
-from .msnet import DEFAULT, MSNet, pad_to_multiple
-from .preprocess import ALBEDO, COV, DIFFUSE, SPECULAR, VAR, preprocess, raw_from_channels, targets
+from .msnet import MSNet, add_shape_arguments, from_arguments, pad_to_multiple
+from .preprocess import ALBEDO, DIFFUSE, SPECULAR, VAR, preprocess, raw_from_channels, targets
 from .recon import reconstruct as _recon_v1
 from .recon_ms import reconstruct
 
@@ -307,12 +306,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
     p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
     p.add_argument("--lin-predictor-width", type=int, default=128, help="lin2020: predictor width (paper: 128)")
-    p.add_argument("--ext-width", type=int, default=DEFAULT["ext_width"])
-    p.add_argument("--ext-blocks", type=int, default=DEFAULT["ext_blocks"])
-    p.add_argument("--enc", default=",".join(map(str, DEFAULT["enc"])))
-    p.add_argument("--dec", default=",".join(map(str, DEFAULT["dec"])))
-    p.add_argument("--kernel-size", type=int, default=DEFAULT["kernel_size"])
-    p.add_argument("--levels", type=int, default=DEFAULT["levels"])
+    add_shape_arguments(p)
     p.add_argument("--export", default=None, help="export best.pt as contract-v2 full and nocov into this models directory")
     return p.parse_args(argv)
 
@@ -348,9 +342,7 @@ def main(argv=None) -> int:
         net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
         a.cov_dropout = 0.0  # the paper's network always has covariance
     else:
-        net = MSNet(in_features=len(FEATURES_FULL), ext_width=a.ext_width, ext_blocks=a.ext_blocks,
-                    enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
-                    kernel_size=a.kernel_size, levels=a.levels)
+        net = from_arguments(a, len(FEATURES_FULL))
     net = net.to(dev).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=a.lr)
 
