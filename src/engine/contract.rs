@@ -122,6 +122,22 @@ impl Variant {
     pub fn uses_covariance(self) -> bool {
         self == Variant::Full
     }
+
+    /// A variant choice where `auto` (or nothing) lets the frame decide: `None`.
+    pub fn parse_choice(s: &str) -> Result<Option<Variant>, String> {
+        match s {
+            "" | "auto" => Ok(None),
+            other => other.parse().map(Some),
+        }
+    }
+}
+
+impl std::str::FromStr for Variant {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Variant, String> {
+        Variant::parse(s).ok_or_else(|| format!("unknown variant `{s}` (expected auto, full or nocov)"))
+    }
 }
 
 /// The two networks of a variant.

@@ -5,19 +5,26 @@ use std::path::{Path, PathBuf};
 use ort::session::{builder::GraphOptimizationLevel, Session};
 use ort::value::{TensorRef, ValueType};
 use serde::Serialize;
+use sha2::Digest;
 
 use super::contract::{self, keys, Component, Variant, COLOR_CHANNELS, TAPS};
 use super::EngineError;
 
-/// What a model file declares about itself.
+/// A loaded network: what its file declares about itself, and the file's digest. The one
+/// description of a model, reported by `/v1/models`, `ListModels` and the metrics.
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelInfo {
     pub variant: Variant,
     pub component: Component,
+    #[serde(rename = "file")]
     pub path: PathBuf,
+    /// The model contract version the file declares (checked at load).
+    pub contract: String,
     pub receptive_radius: usize,
     pub flops_per_pixel: f64,
     pub architecture: String,
+    /// SHA-256 of the file, hex.
+    pub sha256: String,
 }
 
 /// One network (a component of a variant) in its own session.
@@ -87,8 +94,19 @@ impl Network {
         check_outlet(path, session.inputs(), "features", variant.feature_channels())?;
         check_outlet(path, session.outputs(), "kernel", TAPS)?;
 
-        let info =
-            ModelInfo { variant, component, path: path.to_path_buf(), receptive_radius, flops_per_pixel, architecture };
+        let sha256 = std::fs::read(path)
+            .map(|b| sha2::Sha256::digest(&b).iter().map(|x| format!("{x:02x}")).collect())
+            .map_err(|e| model_error(path, format!("cannot read: {e}")))?;
+        let info = ModelInfo {
+            variant,
+            component,
+            path: path.to_path_buf(),
+            contract: contract::CONTRACT_VERSION.to_string(),
+            receptive_radius,
+            flops_per_pixel,
+            architecture,
+            sha256,
+        };
         Ok(Network { session, info })
     }
 
