@@ -132,7 +132,7 @@ fuzz-cmin: setup
 ## Production network (contract v2, docs/training.md): trains msnet on DATA in the
 ## background-friendly, resumable way; on a GPU machine use scripts/gpu-pipeline.
 MS_RUN ?= runs/ms
-MS_ARGS ?= --steps 20000 --batch 8 --patch 96 --val-every 500
+MS_ARGS ?= --steps 6000 --batch 8 --patch 64 --val-every 250 --val-frames 24
 .PHONY: train-ms
 train-ms: build
 	cd training && $(PY) -m mcdenoise_train.train_ms --data $(abspath $(DATA)) --out $(abspath $(MS_RUN)) \
