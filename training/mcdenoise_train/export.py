@@ -179,8 +179,11 @@ def export_onnx(
     component: str,
     variant: str,
     verify: bool = True,
+    name: str | None = None,
 ) -> onnx.ModelProto:
-    """Write `model` as `component` ('diffuse'/'specular') of `variant` ('full'/'nocov')."""
+    """Write `model` as `component` ('diffuse'/'specular') of `variant` ('full'/'nocov',
+    its feature set). `name` is the served variant's name (its directory, e.g. `lin2020`)
+    when it differs from the feature set's."""
     if component not in COMPONENTS:
         raise ValueError(f"unknown component {component!r}; expected one of {COMPONENTS}")
     if variant not in VARIANTS:
@@ -192,18 +195,25 @@ def export_onnx(
         )
     net = copy.deepcopy(model).cpu().float().eval()
     proto = _to_proto(net, net.in_features)
-    del proto.metadata_props[:]
-    for k, v in metadata_for(net, component, variant).items():
-        proto.metadata_props.add(key=k, value=v)
-    proto.doc_string = f"mcdenoise contract v{CONTRACT_VERSION} {variant}/{component}"
     _check_graph(proto, net.in_features)
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(proto, str(path))
+    name = name or variant
+    metadata = {**metadata_for(net, component, variant), "mcdenoise.variant": name}
+    write_model(proto, metadata, f"mcdenoise contract v{CONTRACT_VERSION} {name}/{component}", path)
     if verify:
         verify_onnx(path, net)
     return proto
+
+
+def write_model(proto: onnx.ModelProto, metadata: dict[str, str], doc: str, path: str | os.PathLike) -> None:
+    """Save `proto` at `path` (directories created) with exactly `metadata` as its
+    metadata_props and `doc` as its doc string: the last step of both contracts' exports."""
+    del proto.metadata_props[:]
+    for k, v in metadata.items():
+        proto.metadata_props.add(key=k, value=v)
+    proto.doc_string = doc
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save(proto, str(path))
 
 
 # ----- command line --------------------------------------------------------------------

@@ -30,6 +30,7 @@ import torch
 
 from .contract import COLOR_CHANNELS, FEATURES_FULL, NOCOV_INDICES, feature_names, variant_for
 from .export import read_metadata as read_metadata_v2
+from .export import write_model
 from .msnet import MSNet, add_shape_arguments, from_arguments
 
 CONTRACT = 2
@@ -139,14 +140,8 @@ def verify_onnx(path: str | os.PathLike, model: MSNet, seed: int = 0) -> float:
 def export_onnx(model: MSNet, path: str | os.PathLike, variant: str, verify: bool = True) -> onnx.ModelProto:
     net = copy.deepcopy(model).cpu().float().eval()
     proto = _to_proto(net)
-    del proto.metadata_props[:]
-    for k, v in metadata_for(net, variant).items():
-        proto.metadata_props.add(key=k, value=v)
-    proto.doc_string = f"mcdenoise contract v{CONTRACT} {variant}"
     _check_graph(proto, net)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(proto, str(path))
+    write_model(proto, metadata_for(net, variant), f"mcdenoise contract v{CONTRACT} {variant}", path)
     if verify:
         verify_onnx(path, net)
     return proto

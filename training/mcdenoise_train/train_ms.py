@@ -256,20 +256,13 @@ def validate(net: MSNet, val: FrameSet, zero_cov: bool = False) -> dict[str, flo
 
 def export_lin2020(checkpoint: Path, models: Path) -> None:
     """The paper's pair as contract-v1 files in `models/lin2020/`, named variant `lin2020`."""
-    import onnx
-
     from .checkpoint import load_checkpoint
     from .export import export_onnx
 
     nets, _ = load_checkpoint(checkpoint)
     for c, net in nets.items():
         path = models / "lin2020" / f"{c}.onnx"
-        export_onnx(net, path, c, "full")
-        proto = onnx.load(str(path))
-        for p in proto.metadata_props:
-            if p.key == "mcdenoise.variant":
-                p.value = "lin2020"
-        onnx.save(proto, str(path))
+        export_onnx(net, path, c, "full", name="lin2020")
         print(f"{path}: {net.param_count()} params, {net.flops_per_pixel()} FLOP/px", file=sys.stderr)
 
 
