@@ -179,6 +179,20 @@ def test_preprocess_matches_frame_layout(request, variant):
             )
 
 
+
+def _compare_output(out, expect, shape, float_tol):
+    """Every `<prefix>R/G/B` channel of the engine's output `out` against `expect[prefix]`
+    ([3, H, W]): `float_tol` where the engine wrote float32, half's precision otherwise."""
+    got = read_exr(out)
+    types = exr_pixel_types(out)
+    for prefix, ref in expect.items():
+        for i, c in enumerate("RGB"):
+            name = prefix + c
+            assert name in got, f"{out} has no channel {name!r}; channels: {sorted(got)}"
+            assert got[name].shape == shape, name
+            tol = float_tol if types[name] == "FLOAT" else 2.0**-10
+            _compare(name, got[name], ref[i], tol)
+
 def _compare(name, got, ref, tol):
     err = np.abs(got.astype(np.float64) - ref) / np.maximum(np.abs(ref), 1e-3)
     i = tuple(int(j) for j in np.unravel_index(int(err.argmax()), err.shape))
@@ -212,15 +226,7 @@ def test_run_matches_torch(request, variant):
     out = root / f"out-{variant}.exr"
     engine(exe, "run", case["paths"][variant], "-o", out, "--models", case["models"],
            "--layers", "diffuse,specular", "--tile", TILE)
-    got = read_exr(out)
-    types = exr_pixel_types(out)
-    for prefix, ref in expect.items():
-        for i, c in enumerate("RGB"):
-            name = prefix + c
-            assert name in got, f"{out} has no channel {name!r}; channels: {sorted(got)}"
-            assert got[name].shape == (H, W), name
-            tol = 1e-4 if types[name] == "FLOAT" else 2.0**-10
-            _compare(name, got[name], ref[i], tol)
+    _compare_output(out, expect, (H, W), float_tol=1e-4)
 
 
 # --- Contract v2 ---------------------------------------------------------------------------
@@ -282,12 +288,4 @@ def test_run_matches_torch_v2(request, variant):
     out = root / f"out-{variant}.exr"
     engine(exe, "run", case["paths"][variant], "-o", out, "--models", case["models"],
            "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", variant)
-    got = read_exr(out)
-    types = exr_pixel_types(out)
-    for prefix, ref in expect.items():
-        for i, c in enumerate("RGB"):
-            name = prefix + c
-            assert name in got, f"{out} has no channel {name!r}; channels: {sorted(got)}"
-            assert got[name].shape == (H2, W2), name
-            tol = 1e-5 if types[name] == "FLOAT" else 2.0**-10
-            _compare(name, got[name], ref[i], tol)
+    _compare_output(out, expect, (H2, W2), float_tol=1e-5)

@@ -254,12 +254,7 @@ class Builder:
             P, F = _tube(o["p0"], o["p1"], o["radius"])
             return [_mesh_object(self.bpy, name, P, F, mat, smooth=True)]
         if sh in ("dsphere", "torus"):
-            if sh == "dsphere":
-                P, F = meshes.displaced_sphere(o["seed"], o["amplitude"], o["freq"])
-                P = P * o["radius"]
-            else:
-                P, F = meshes.torus(o["R"], o["r"])
-            P = P @ scenes._rot_matrix(o.get("rot", [0, 0, 0])).T + np.asarray(o["center"])
+            P, F = scenes.generated_mesh(o)
             vp = o["material"].get("vertex_pattern")
             colors = textures.colorize(textures.pattern_3d(vp["pattern"], P, vp["seed"]), vp["c0"], vp["c1"]) if vp else None
             return [_mesh_object(self.bpy, name, P, F, mat, smooth=True, colors=colors)]

@@ -801,6 +801,17 @@ def _affine(R, t, s):
     return mi.ScalarTransform4f(M.tolist())
 
 
+
+def generated_mesh(o: dict):
+    """Vertices (world space) and faces of a generated-mesh object (`dsphere` or `torus`),
+    as both renderers build it."""
+    if o["shape"] == "dsphere":
+        P, F = meshes.displaced_sphere(o["seed"], o["amplitude"], o["freq"])
+        P = P * o["radius"]
+    else:
+        P, F = meshes.torus(o["R"], o["r"])
+    return P @ _rot_matrix(o.get("rot", [0, 0, 0])).T + np.asarray(o["center"]), F
+
 def _shape_dicts(o, key):
     """Mitsuba dicts (or Mesh objects) of one object spec."""
     import mitsuba as mi
@@ -820,12 +831,7 @@ def _shape_dicts(o, key):
     if sh == "cylinder":
         return {key: {"type": "cylinder", "p0": o["p0"], "p1": o["p1"], "radius": o["radius"], "bsdf": bsdf}}
     if sh in ("dsphere", "torus"):
-        if sh == "dsphere":
-            P, F = meshes.displaced_sphere(o["seed"], o["amplitude"], o["freq"])
-            P = P * o["radius"]
-        else:
-            P, F = meshes.torus(o["R"], o["r"])
-        P = P @ _rot_matrix(o.get("rot", [0, 0, 0])).T + np.asarray(o["center"])
+        P, F = generated_mesh(o)
         colors = None
         vp = o["material"].get("vertex_pattern")
         if vp:
