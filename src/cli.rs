@@ -12,8 +12,10 @@ use serde_json::json;
 
 use crate::config::FireflyArgs;
 use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
-use crate::frame::{self, Buffer, Frame, Limits, OutputLayer};
-use crate::metrics::Metrics;
+use crate::frame::{Buffer, Frame, Limits};
+use crate::jobs::Layer;
+use crate::pipeline::{self, Failure, Input};
+use crate::quality::Metrics;
 
 /// Options shared by the commands that read frames.
 #[derive(Args, Debug, Clone)]
@@ -123,23 +125,12 @@ pub struct PreprocessArgs {
 }
 
 fn read(path: &Path, limits: &Limits, reference: bool) -> Result<Frame> {
-    let bytes = fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let frame =
-        if reference { Frame::reference_from_exr_bytes(&bytes, limits) } else { Frame::from_exr_bytes(&bytes, limits) };
-    frame.with_context(|| format!("{}: invalid frame", path.display()))
+    let which = if reference { Input::Reference } else { Input::Frame };
+    pipeline::decode(path, which, limits).map_err(|e| pipeline_error(e, path, Some(path)))
 }
 
 fn check_same_size(frame: &Frame, reference: &Frame) -> Result<()> {
-    if (frame.width, frame.height) != (reference.width, reference.height) {
-        bail!(
-            "reference is {}x{} but the frame is {}x{}",
-            reference.width,
-            reference.height,
-            frame.width,
-            frame.height
-        );
-    }
-    Ok(())
+    Ok(pipeline::check_same_size((frame.width, frame.height), (reference.width, reference.height))?)
 }
 
 fn ms(t: Instant) -> f64 {
@@ -163,11 +154,8 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// `mcdenoise run`: denoise one frame, print a JSON report on stdout.
 pub fn run(args: RunArgs) -> Result<()> {
     let total = Instant::now();
-    for layer in &args.layers {
-        if layer != "diffuse" && layer != "specular" {
-            bail!("unknown layer `{layer}` (expected diffuse or specular)");
-        }
-    }
+    let layers =
+        args.layers.iter().map(|l| l.parse::<Layer>().map_err(anyhow::Error::msg)).collect::<Result<Vec<_>>>()?;
     let mut config = EngineConfig::new(&args.models);
     config.tile = args.tile;
     config.tile_v2 = args.tile_v2;
@@ -180,45 +168,30 @@ pub fn run(args: RunArgs) -> Result<()> {
     let mut engine = Engine::load(&config)?;
     let load_ms = ms(t);
 
-    let limits = args.frame.limits();
-    let t = Instant::now();
-    let frame = read(&args.input, &limits, false)?;
-    let reference = args.reference.as_deref().map(|p| read(p, &limits, true)).transpose()?;
-    if let Some(r) = &reference {
-        check_same_size(&frame, r)?;
-    }
-    let decode_ms = ms(t);
-
     let fireflies = args.fireflies.settings();
-    let out = engine.denoise_with(&frame, args.variant.resolve(), fireflies, &mut |p| {
+    let request = pipeline::Request {
+        frame: &args.input,
+        reference: args.reference.as_deref(),
+        variant: args.variant.resolve(),
+        fireflies,
+        layers: &layers,
+        limits: args.frame.limits(),
+    };
+    let out = pipeline::run(&mut engine, &request, &mut |p| {
         tracing::debug!(tile = p.tiles_done, of = p.tiles_total, "tile done");
         true
-    })?;
+    })
+    .map_err(|e| pipeline_error(e, &args.input, args.reference.as_deref()))?;
 
     let t = Instant::now();
-    let mut layers = vec![OutputLayer { prefix: "", planes: [&out.color[0], &out.color[1], &out.color[2]] }];
-    if args.layers.iter().any(|l| l == "diffuse") {
-        layers.push(OutputLayer { prefix: "diffuse", planes: [&out.diffuse[0], &out.diffuse[1], &out.diffuse[2]] });
-    }
-    if args.layers.iter().any(|l| l == "specular") {
-        layers.push(OutputLayer { prefix: "specular", planes: [&out.specular[0], &out.specular[1], &out.specular[2]] });
-    }
-    let bytes = frame::write_exr(out.width, out.height, &layers).context("cannot encode the result")?;
-    write_atomic(&args.output, &bytes)?;
-    let encode_ms = ms(t);
-
-    let metrics = reference.as_ref().map(|r| {
-        let rc = r.color();
-        let rgb = [&rc[0][..], &rc[1][..], &rc[2][..]];
-        let noisy = frame.color();
-        json!({
-            "input": Metrics::compute([&noisy[0], &noisy[1], &noisy[2]], rgb, frame.width, frame.height),
-            "output": Metrics::compute([&out.color[0], &out.color[1], &out.color[2]], rgb, frame.width, frame.height),
-        })
-    });
+    write_atomic(&args.output, &out.encoded)?;
+    let mut timings = out.timings;
+    timings.encode += ms(t);
+    timings.total = ms(total);
     let flops = engine.flops_per_pixel(out.variant).unwrap_or(0.0);
     let contract = engine.models().iter().find(|m| m.variant == out.variant).map_or(0, |m| m.contract);
     eprintln!("denoised {} with variant `{}` (contract {contract})", args.input.display(), out.variant);
+    let inference_s = (timings.inference / 1e3).max(1e-9);
     let report = json!({
         "input": args.input,
         "output": args.output,
@@ -230,8 +203,8 @@ pub fn run(args: RunArgs) -> Result<()> {
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "threads": config.threads,
         "flops_per_pixel": flops,
-        "sanitized": frame.sanitized,
-        "missing_variances": frame.missing_variances,
+        "sanitized": out.sanitized,
+        "missing_variances": out.missing_variances,
         "fireflies": {
             "mode": fireflies.mode,
             "strength": fireflies.strength,
@@ -240,19 +213,34 @@ pub fn run(args: RunArgs) -> Result<()> {
         },
         "timings_ms": {
             "load_models": load_ms,
-            "decode": decode_ms,
-            "fireflies": out.timings.fireflies.as_secs_f64() * 1e3,
-            "preprocess": out.timings.preprocess.as_secs_f64() * 1e3,
-            "inference": out.timings.inference.as_secs_f64() * 1e3,
-            "reconstruction": out.timings.reconstruction.as_secs_f64() * 1e3,
-            "encode": encode_ms,
-            "total": ms(total),
+            "decode": timings.decode,
+            "fireflies": out.fireflies_ms,
+            "preprocess": timings.preprocess - out.fireflies_ms,
+            "inference": timings.inference,
+            "reconstruction": timings.reconstruction,
+            "encode": timings.encode,
+            "total": timings.total,
         },
-        "inference_gflops_per_s": flops * (out.width * out.height) as f64 / out.timings.inference.as_secs_f64().max(1e-9) / 1e9,
-        "metrics": metrics,
+        "inference_gflops_per_s": flops * (out.width * out.height) as f64 / inference_s / 1e9,
+        "metrics": out.metrics,
     });
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())
+}
+
+/// A pipeline failure as the command reports it: with the file it concerns.
+fn pipeline_error(e: pipeline::Failure, input: &Path, reference: Option<&Path>) -> anyhow::Error {
+    let path = |which: Input| match which {
+        Input::Frame => input.display().to_string(),
+        Input::Reference => reference.map(|p| p.display().to_string()).unwrap_or_default(),
+    };
+    match e {
+        Failure::Read { which, error } => anyhow::Error::new(error).context(format!("cannot read {}", path(which))),
+        Failure::Invalid { which, error } => {
+            anyhow::Error::new(error).context(format!("{}: invalid frame", path(which)))
+        }
+        other => other.into(),
+    }
 }
 
 /// `mcdenoise preprocess`: the network inputs (and training targets) of one frame as `.npz`.

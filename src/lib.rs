@@ -7,7 +7,9 @@
 //! - [`frame`]: OpenEXR frames to validated planar buffers (channel layout and aliases).
 //! - [`engine`]: preprocessing, model loading (contract v1), tiled inference, kernel
 //!   reconstruction. Synchronous; callers own the threads.
-//! - [`metrics`]: RelMSE, DSSIM, PSNR, SMAPE.
+//! - [`quality`]: image-quality metrics (RelMSE, DSSIM, PSNR, SMAPE).
+//! - [`pipeline`]: one frame through a denoiser: decode, denoise, encode, quality metrics
+//!   (shared by `mcdenoise run` and the daemon's workers).
 //! - [`cli`]: the offline commands (`mcdenoise run`, `mcdenoise preprocess`).
 //! - The daemon (`mcdenoise serve`, `docs/api.md`): [`config`] (flags, environment, file),
 //!   [`jobs`] (the transport-free core: admission, persistent store, priority queue,
@@ -29,7 +31,8 @@ pub mod frame;
 pub mod grpc;
 pub mod http;
 pub mod jobs;
-pub mod metrics;
+pub mod pipeline;
+pub mod quality;
 pub mod server;
 pub mod telemetry;
 pub mod tls;

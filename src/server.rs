@@ -21,6 +21,10 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use crate::config::ServeArgs;
+use crate::engine::{
+    Denoised, Denoiser, DenoiserFactory, Engine, EngineConfig, EngineError, Fireflies, ModelInfo, Progress, Variant,
+};
+use crate::frame::Frame;
 use crate::jobs::{JobService, Settings};
 use crate::telemetry::Telemetry;
 
@@ -57,10 +61,12 @@ impl Server {
         // Before the job store and the workers: a bad certificate stops the start cleanly.
         let tls = crate::tls::Tls::load(args.tls_cert.as_deref(), args.tls_key.as_deref())?;
         let settings = Settings::from_args(&args);
+        let denoisers = denoisers(&args, settings.engine.clone());
         let data_dir = args.data_dir.clone();
-        let (service, workers) = tokio::task::spawn_blocking(move || JobService::start(&data_dir, settings, telemetry))
-            .await?
-            .context("cannot open the job store")?;
+        let (service, workers) =
+            tokio::task::spawn_blocking(move || JobService::start(&data_dir, settings, telemetry, denoisers))
+                .await?
+                .context("cannot open the job store")?;
 
         let trigger = CancellationToken::new();
         let stop = CancellationToken::new();
@@ -186,14 +192,52 @@ async fn janitor(service: JobService, every: Duration, stop: CancellationToken) 
         tokio::select! {
             _ = stop.cancelled() => break,
             _ = tick.tick() => {
-                let s = service.clone();
-                match tokio::task::spawn_blocking(move || s.sweep()).await {
-                    Ok(Ok(_)) => {}
-                    Ok(Err(e)) => tracing::error!(error = %e, "retention sweep failed"),
-                    Err(e) => tracing::error!(error = %e, "retention sweep panicked"),
+                if let Err(e) = service.sweep().await {
+                    tracing::error!(error = %e, "retention sweep failed");
                 }
             }
         }
+    }
+}
+
+/// The denoisers of the workers: engines loaded from `engine`, slowed down by the hidden
+/// test hooks `--debug-startup-delay` (before loading) and `--debug-tile-delay` (after
+/// every tile) when those are set.
+pub fn denoisers(args: &ServeArgs, engine: EngineConfig) -> DenoiserFactory {
+    let engines = Engine::factory(engine);
+    let (startup, tile) = (args.debug_startup_delay, args.debug_tile_delay);
+    if startup.is_zero() && tile.is_zero() {
+        return engines;
+    }
+    Arc::new(move || {
+        std::thread::sleep(startup);
+        Ok(Box::new(Slowed { inner: engines()?, tile }) as Box<dyn Denoiser>)
+    })
+}
+
+/// A denoiser that sleeps after every tile, before reporting it (`--debug-tile-delay`).
+struct Slowed {
+    inner: Box<dyn Denoiser>,
+    tile: Duration,
+}
+
+impl Denoiser for Slowed {
+    fn models(&self) -> Vec<ModelInfo> {
+        self.inner.models()
+    }
+
+    fn denoise(
+        &mut self,
+        frame: &Frame,
+        variant: Option<Variant>,
+        fireflies: Fireflies,
+        on_tile: &mut dyn FnMut(Progress) -> bool,
+    ) -> Result<Denoised, EngineError> {
+        let delay = self.tile;
+        self.inner.denoise(frame, variant, fireflies, &mut |p| {
+            std::thread::sleep(delay);
+            on_tile(p)
+        })
     }
 }
 

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use mcdenoise::engine::preprocess::luminance;
 use mcdenoise::engine::{Engine, EngineConfig, Fireflies};
 use mcdenoise::frame::{Buffer, Frame, Limits};
-use mcdenoise::metrics::relmse;
+use mcdenoise::quality::relmse;
 
 fn fixture(name: &str) -> Frame {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames").join(name);

@@ -8,7 +8,7 @@ use std::path::PathBuf;
 
 use mcdenoise::engine::{Engine, EngineConfig, Variant};
 use mcdenoise::frame::{Frame, Limits};
-use mcdenoise::metrics::Metrics;
+use mcdenoise::quality::Metrics;
 
 fn fixture(name: &str) -> Vec<u8> {
     std::fs::read(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames").join(name)).unwrap()

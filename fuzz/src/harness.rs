@@ -20,7 +20,7 @@
 
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use arbitrary::{Arbitrary, Unstructured};
 use axum::body::Body;
@@ -33,7 +33,7 @@ use mcdenoise::client::percent_encode;
 use mcdenoise::error::Error;
 use mcdenoise::frame::{Frame, Limits, SampleType};
 use mcdenoise::grpc::pb;
-use mcdenoise::jobs::{JobService, Phase, Settings};
+use mcdenoise::jobs::{JobService, Settings};
 
 /// The pixel limit of the harnesses (a 64×64 frame).
 pub const MAX_PIXELS: u64 = 64 * 64;
@@ -401,13 +401,13 @@ fn daemon() -> &'static Daemon {
         .expect("valid arguments");
         let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();
         let telemetry = Arc::new(mcdenoise::telemetry::Telemetry::new());
+        let settings = Settings::from_args(&args);
+        let engines = mcdenoise::engine::Engine::factory(settings.engine.clone());
         let (service, _workers) =
-            JobService::start(dir.path(), Settings::from_args(&args), telemetry).expect("the job service starts");
-        let t = Instant::now();
-        while service.phase() != Phase::Ready {
-            assert!(t.elapsed() < Duration::from_secs(60), "the tiny models did not load (is ORT_DYLIB_PATH set?)");
-            std::thread::sleep(Duration::from_millis(10));
-        }
+            JobService::start(dir.path(), settings, telemetry, engines).expect("the job service starts");
+        runtime
+            .block_on(service.wait_ready(Duration::from_secs(60)))
+            .expect("the tiny models load (is ORT_DYLIB_PATH set?)");
         let state = mcdenoise::http::AppState {
             service: service.clone(),
             tokens: Arc::new(Tokens::default()),
@@ -454,8 +454,8 @@ pub fn exr_frame_bytes(data: &[u8]) -> bool {
 }
 
 /// Deletes an accepted job so the store does not grow.
-fn forget(service: &JobService, id: &str) {
-    let _ = service.delete(id);
+fn forget(d: &Daemon, id: &str) {
+    let _ = d.runtime.block_on(d.service.delete(id));
 }
 
 /// Whether the submission was accepted as a job.
@@ -472,7 +472,7 @@ pub fn http_submit(input: &HttpSubmit) -> bool {
     assert!(!status.is_server_error() || status == 503, "{status}: {text}");
     if status == 202 {
         let job: serde_json::Value = serde_json::from_slice(&body).expect("a 202 carries the job");
-        forget(&d.service, job["id"].as_str().expect("the job has an id"));
+        forget(d, job["id"].as_str().expect("the job has an id"));
     }
     status == 202
 }
@@ -494,7 +494,7 @@ pub fn grpc_chunks(input: &GrpcUpload) -> bool {
     ));
     match result {
         Ok(job) => {
-            forget(&d.service, &job.id);
+            forget(d, &job.id);
             true
         }
         Err(Error::Internal(message)) => panic!("internal error from a client's stream: {message}"),

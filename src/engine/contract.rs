@@ -139,6 +139,14 @@ impl Variant {
         (!b.is_empty() && b.len() <= Variant::MAX_LEN && b[0].is_ascii_alphanumeric() && b.iter().all(|&c| ok(c)))
             .then(|| Variant::from_static(name))
     }
+
+    /// A variant choice where `auto` (or nothing) lets the frame decide: `None`.
+    pub fn parse_choice(s: &str) -> Result<Option<Variant>, String> {
+        match s {
+            "" | "auto" => Ok(None),
+            other => other.parse().map(Some),
+        }
+    }
 }
 
 impl fmt::Display for Variant {
@@ -204,6 +212,19 @@ impl FeatureSet {
     /// The set whose comma-separated names are `list`.
     pub fn from_list(list: &str) -> Option<FeatureSet> {
         FeatureSet::ALL.into_iter().find(|f| f.features().join(",") == list)
+    }
+}
+
+impl std::str::FromStr for Variant {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Variant, String> {
+        Variant::parse(s).ok_or_else(|| {
+            format!(
+                "`{s}` is not a variant name (auto, or a directory name of up to {} letters, digits, _, -, .)",
+                Variant::MAX_LEN
+            )
+        })
     }
 }
 

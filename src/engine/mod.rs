@@ -25,8 +25,8 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use contract::{Component, FeatureSet, Variant};
-pub use model::{ModelInfo, VariantModel};
 pub use fireflies::{Fireflies, FireflyMode};
+pub use model::{ModelInfo, VariantModel};
 pub use preprocess::{FrameStats, Rect, EPS};
 
 use crate::frame::{Buffer, Frame, Plane};
@@ -292,6 +292,55 @@ impl Engine {
             run_region(model, &self.pool, frame, &stats, region, core, plan.multiple, &mut timings, false)?;
         }
         Ok(timings.inference)
+    }
+}
+
+/// What the daemon's workers and `mcdenoise run` need of a denoiser. [`Engine`] is the real
+/// one (ONNX Runtime); the job service's unit tests drive the whole job lifecycle with a fake
+/// that needs no model.
+pub trait Denoiser {
+    /// The loaded networks.
+    fn models(&self) -> Vec<ModelInfo>;
+
+    /// Denoises `frame` (see [`Engine::denoise_with`]): `on_tile` is called after each tile,
+    /// and returning `false` stops between tiles with [`EngineError::Cancelled`].
+    fn denoise(
+        &mut self,
+        frame: &Frame,
+        variant: Option<Variant>,
+        fireflies: Fireflies,
+        on_tile: &mut dyn FnMut(Progress) -> bool,
+    ) -> Result<Denoised, EngineError>;
+}
+
+impl Denoiser for Engine {
+    fn models(&self) -> Vec<ModelInfo> {
+        Engine::models(self).into_iter().cloned().collect()
+    }
+
+    fn denoise(
+        &mut self,
+        frame: &Frame,
+        variant: Option<Variant>,
+        fireflies: Fireflies,
+        on_tile: &mut dyn FnMut(Progress) -> bool,
+    ) -> Result<Denoised, EngineError> {
+        Engine::denoise_with(self, frame, variant, fireflies, on_tile)
+    }
+}
+
+/// Makes the denoiser of one worker. Called on the worker's own thread, which then owns
+/// the denoiser (its ONNX Runtime sessions and thread pool) until it exits.
+pub type DenoiserFactory = std::sync::Arc<dyn Fn() -> Result<Box<dyn Denoiser>, EngineError> + Send + Sync>;
+
+impl Engine {
+    /// A factory of engines loaded from `config` and warmed up.
+    pub fn factory(config: EngineConfig) -> DenoiserFactory {
+        std::sync::Arc::new(move || {
+            let mut engine = Engine::load(&config)?;
+            engine.warm_up()?;
+            Ok(Box::new(engine) as Box<dyn Denoiser>)
+        })
     }
 }
 

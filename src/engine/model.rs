@@ -7,12 +7,14 @@ use std::path::{Path, PathBuf};
 use ort::session::{builder::GraphOptimizationLevel, Session};
 use ort::value::{TensorRef, ValueType};
 use serde::Serialize;
+use sha2::Digest;
 
 use super::contract::{self, keys, Component, FeatureSet, Variant, COLOR_CHANNELS, TAPS};
 use super::multiscale::Pyramid;
 use super::EngineError;
 
-/// What a model file declares about itself.
+/// A loaded network: what its file declares about itself, and the file's digest. The one
+/// description of a model, reported by `/v1/models`, `ListModels` and the metrics.
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelInfo {
     pub variant: Variant,
@@ -22,10 +24,13 @@ pub struct ModelInfo {
     pub contract: u32,
     /// The feature inputs (`mcdenoise.features`).
     pub features: FeatureSet,
+    #[serde(rename = "file")]
     pub path: PathBuf,
     pub receptive_radius: usize,
     pub flops_per_pixel: f64,
     pub architecture: String,
+    /// SHA-256 of the file, hex.
+    pub sha256: String,
     /// Side of the predicted kernels.
     pub kernel_size: usize,
     /// Pyramid levels (1 for contract v1).
@@ -66,6 +71,8 @@ struct Opened {
     session: Session,
     path: PathBuf,
     meta: std::collections::HashMap<String, String>,
+    /// SHA-256 of the file, hex.
+    sha256: String,
 }
 
 impl Opened {
@@ -73,6 +80,9 @@ impl Opened {
         if !path.is_file() {
             return Err(model_error(path, "file not found"));
         }
+        let sha256 = std::fs::read(path)
+            .map(|b| sha2::Sha256::digest(&b).iter().map(|x| format!("{x:02x}")).collect())
+            .map_err(|e| model_error(path, format!("cannot read: {e}")))?;
         let session =
             build_session(env, path, threads.max(1)).map_err(|e| model_error(path, format!("cannot load: {e}")))?;
         let meta = {
@@ -81,7 +91,7 @@ impl Opened {
             let keys = meta.custom_keys().map_err(fail)?;
             keys.into_iter().filter_map(|k| meta.custom(&k).map(|v| (k, v))).collect()
         };
-        Ok(Opened { session, path: path.to_path_buf(), meta })
+        Ok(Opened { session, path: path.to_path_buf(), meta, sha256 })
     }
 
     fn get(&self, key: &str) -> Result<&str, EngineError> {
@@ -179,6 +189,7 @@ impl Network {
             architecture,
             kernel_size: contract::KERNEL_SIZE,
             levels: 1,
+            sha256: model.sha256.clone(),
         };
         Ok(Network { session: model.session, info })
     }
@@ -287,6 +298,7 @@ impl MultiScaleNetwork {
             architecture,
             kernel_size,
             levels,
+            sha256: model.sha256.clone(),
         };
         Ok(MultiScaleNetwork { session: model.session, info, size_multiple })
     }

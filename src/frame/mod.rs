@@ -69,7 +69,7 @@ fn available_summary(names: &[String]) -> String {
 }
 
 /// Non-finite samples replaced by 0, per buffer.
-#[derive(Clone, Debug, Default, Serialize, PartialEq)]
+#[derive(Clone, Debug, Default, Serialize, serde::Deserialize, PartialEq)]
 pub struct Sanitized {
     pub total: u64,
     /// Buffer name → count, only buffers with replacements.

@@ -100,15 +100,25 @@ fn priority_from_pb(v: i32) -> Result<Option<Priority>, Status> {
     })
 }
 
+impl From<&crate::engine::ModelInfo> for pb::ModelInfo {
+    fn from(m: &crate::engine::ModelInfo) -> pb::ModelInfo {
+        pb::ModelInfo {
+            variant: m.variant.name().to_string(),
+            component: m.component_name().to_string(),
+            file: m.path.display().to_string(),
+            receptive_radius: m.receptive_radius as u32,
+            flops_per_pixel: m.flops_per_pixel,
+            architecture: m.architecture.clone(),
+            sha256: m.sha256.clone(),
+            contract: m.contract.to_string(),
+        }
+    }
+}
+
 /// Job options from their protobuf form.
 pub fn options_from_pb(o: Option<pb::JobOptions>) -> Result<JobOptions, Status> {
     let o = o.unwrap_or_default();
-    let mut layers = Vec::new();
-    for l in &o.layers {
-        layers.push(
-            Layer::parse(l).ok_or_else(|| invalid(format!("unknown layer `{l}` (expected diffuse or specular)")))?,
-        );
-    }
+    let layers = o.layers.iter().map(|l| l.parse::<Layer>().map_err(invalid)).collect::<Result<Vec<_>, _>>()?;
     let variant =
         match pb::Variant::try_from(o.variant).map_err(|_| invalid(format!("unknown variant {}", o.variant)))? {
             pb::Variant::Unspecified => None,
@@ -252,17 +262,6 @@ impl Api {
         self.service.telemetry().grpc_request(method, &code);
         result
     }
-
-    async fn blocking<T: Send + 'static>(
-        &self,
-        f: impl FnOnce(&JobService) -> Result<T, Error> + Send + 'static,
-    ) -> Result<T, Status> {
-        let service = self.service.clone();
-        tokio::task::spawn_blocking(move || f(&service))
-            .await
-            .map_err(|e| status(&Error::internal("task", e)))?
-            .map_err(|e| status(&e))
-    }
 }
 
 type EventStream = BoxStream<'static, Result<pb::JobEvent, Status>>;
@@ -305,7 +304,7 @@ impl Denoiser for Api {
 
     async fn cancel_job(&self, request: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let result = self.blocking(move |s| s.cancel(&id)).await.map(|s| Response::new(job_pb(&s)));
+        let result = self.service.cancel(&id).await.map(|s| Response::new(job_pb(&s))).map_err(|e| status(&e));
         self.observe("CancelJob", result)
     }
 
@@ -314,7 +313,8 @@ impl Denoiser for Api {
         request: Request<pb::DeleteJobRequest>,
     ) -> Result<Response<pb::DeleteJobResponse>, Status> {
         let id = request.into_inner().id;
-        let result = self.blocking(move |s| s.delete(&id)).await.map(|()| Response::new(pb::DeleteJobResponse {}));
+        let result =
+            self.service.delete(&id).await.map(|()| Response::new(pb::DeleteJobResponse {})).map_err(|e| status(&e));
         self.observe("DeleteJob", result)
     }
 
@@ -336,20 +336,19 @@ impl Denoiser for Api {
 
     async fn fetch_result(&self, request: Request<pb::FetchResultRequest>) -> Result<Response<ChunkStream>, Status> {
         let id = request.into_inner().id;
-        let result = self.blocking(move |s| s.open_result(&id)).await.map(|(file, len)| {
+        let result = self.service.open_result(&id).await.map_err(|e| status(&e)).map(|(file, len)| {
             let telemetry = self.service.telemetry().clone();
             let mut first = true;
-            let stream =
-                tokio_util::io::ReaderStream::with_capacity(tokio::fs::File::from_std(file), RESULT_CHUNK_BYTES)
-                    .map(move |chunk| match chunk {
-                        Ok(data) => {
-                            telemetry.bytes_sent("grpc", data.len() as u64);
-                            let total_size = if std::mem::take(&mut first) { len } else { 0 };
-                            Ok(pb::ResultChunk { data: data.to_vec(), total_size })
-                        }
-                        Err(e) => Err(status(&Error::internal("reading the result", e))),
-                    })
-                    .boxed();
+            let stream = tokio_util::io::ReaderStream::with_capacity(file, RESULT_CHUNK_BYTES)
+                .map(move |chunk| match chunk {
+                    Ok(data) => {
+                        telemetry.bytes_sent("grpc", data.len() as u64);
+                        let total_size = if std::mem::take(&mut first) { len } else { 0 };
+                        Ok(pb::ResultChunk { data: data.to_vec(), total_size })
+                    }
+                    Err(e) => Err(status(&Error::internal("reading the result", e))),
+                })
+                .boxed();
             Response::new(stream)
         });
         self.observe("FetchResult", result)
@@ -361,19 +360,7 @@ impl Denoiser for Api {
             Some(models) => {
                 let s = self.service.settings();
                 Ok(Response::new(pb::ListModelsResponse {
-                    models: models
-                        .iter()
-                        .map(|m| pb::ModelInfo {
-                            variant: m.variant.clone(),
-                            component: m.component.clone(),
-                            file: m.file.clone(),
-                            receptive_radius: m.receptive_radius as u32,
-                            flops_per_pixel: m.flops_per_pixel,
-                            architecture: m.architecture.clone(),
-                            sha256: m.sha256.clone(),
-                            contract: m.contract.clone(),
-                        })
-                        .collect(),
+                    models: models.iter().map(pb::ModelInfo::from).collect(),
                     tile: s.engine.tile as u32,
                     workers: s.workers as u32,
                     threads_per_worker: s.engine.threads as u32,

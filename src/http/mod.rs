@@ -256,22 +256,18 @@ struct SubmitQuery {
 fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions, Error> {
     let priority = match q.priority.as_deref() {
         None | Some("") => Priority::default(),
-        Some(p) => Priority::parse(p)
-            .ok_or_else(|| Error::BadRequest(format!("unknown priority `{p}` (expected high, normal or low)")))?,
+        Some(p) => p.parse().map_err(Error::BadRequest)?,
     };
-    let mut layers = Vec::new();
-    for l in q.layers.as_deref().unwrap_or("").split(',').map(str::trim).filter(|l| !l.is_empty()) {
-        layers.push(
-            Layer::parse(l)
-                .ok_or_else(|| Error::BadRequest(format!("unknown layer `{l}` (expected diffuse or specular)")))?,
-        );
-    }
-    let variant = match q.variant.as_deref() {
-        None | Some("") | Some("auto") => None,
-        Some(v) => Some(Variant::parse(v).ok_or_else(|| {
-            Error::BadRequest(format!("`{v}` is not a variant name (expected auto or the name of a loaded variant)"))
-        })?),
-    };
+    let layers = q
+        .layers
+        .as_deref()
+        .unwrap_or("")
+        .split(',')
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .map(|l| l.parse().map_err(Error::BadRequest))
+        .collect::<Result<Vec<Layer>, Error>>()?;
+    let variant = Variant::parse_choice(q.variant.as_deref().unwrap_or("")).map_err(Error::BadRequest)?;
     let fireflies = match q.fireflies.as_deref() {
         None | Some("") => None,
         Some(f) => Some(
@@ -522,48 +518,33 @@ async fn list(
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<Value>, ApiError> {
     let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
-    let state = match q.state.as_deref() {
-        None | Some("") => None,
-        Some(s) => Some(JobState::parse(s).ok_or_else(|| Error::BadRequest(format!("unknown state `{s}`")))?),
-    };
-    let priority = match q.priority.as_deref() {
-        None | Some("") => None,
-        Some(p) => Some(Priority::parse(p).ok_or_else(|| Error::BadRequest(format!("unknown priority `{p}`")))?),
-    };
+    let state = q.state.as_deref().filter(|s| !s.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
+    let priority =
+        q.priority.as_deref().filter(|p| !p.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
     let filter = ListFilter { state, priority, label: q.label, limit: q.limit, after: q.page_token };
     let (jobs, next) = app.service.list(&filter)?;
     Ok(Json(json!({ "jobs": jobs.iter().map(job_json).collect::<Vec<_>>(), "next_page_token": next })))
 }
 
-async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, Error> + Send + 'static) -> Result<T, ApiError> {
-    tokio::task::spawn_blocking(f).await.map_err(|e| Error::internal("task", e))?.map_err(ApiError::from)
-}
-
 async fn cancel(State(app): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
-    let service = app.service.clone();
-    let status = blocking(move || service.cancel(&id)).await?;
+    let status = app.service.cancel(&id).await?;
     let code = if status.record.state == JobState::Cancelled { StatusCode::OK } else { StatusCode::ACCEPTED };
     Ok((code, Json(job_json(&status))).into_response())
 }
 
 async fn delete_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
-    let service = app.service.clone();
-    blocking(move || service.delete(&id)).await?;
+    app.service.delete(&id).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
 async fn result(State(app): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
-    let service = app.service.clone();
-    let id2 = id.clone();
-    let (file, len) = blocking(move || service.open_result(&id2)).await?;
+    let (file, len) = app.service.open_result(&id).await?;
     let telemetry = app.service.telemetry().clone();
-    let stream = tokio_util::io::ReaderStream::with_capacity(tokio::fs::File::from_std(file), 256 * 1024).inspect(
-        move |chunk| {
-            if let Ok(c) = chunk {
-                telemetry.bytes_sent("http", c.len() as u64);
-            }
-        },
-    );
+    let stream = tokio_util::io::ReaderStream::with_capacity(file, 256 * 1024).inspect(move |chunk| {
+        if let Ok(c) = chunk {
+            telemetry.bytes_sent("http", c.len() as u64);
+        }
+    });
     Ok((
         [
             (header::CONTENT_TYPE, "image/x-exr".to_string()),

@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use super::model::Priority;
+use super::record::Priority;
 
 #[derive(Default)]
 pub struct Queue {

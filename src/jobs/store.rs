@@ -22,7 +22,7 @@ use std::path::{Path, PathBuf};
 
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
 
-use super::model::JobRecord;
+use super::record::JobRecord;
 use crate::error::{Error, Result};
 
 const JOBS: TableDefinition<&str, &[u8]> = TableDefinition::new("jobs");

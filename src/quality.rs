@@ -10,15 +10,50 @@
 //! - PSNR: `10 log10(1 / MSE)` on values clamped to [0, 1].
 //! - SMAPE: mean of `|x − r| / (|x| + |r| + 0.01)`.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
-/// The four metrics of one image against its reference.
-#[derive(Clone, Copy, Debug, Serialize, PartialEq)]
+/// The four metrics of one image against its reference. PSNR of identical images is
+/// infinite and is written as `null` in JSON.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Metrics {
     pub relmse: f64,
     pub dssim: f64,
+    #[serde(with = "finite_or_null")]
     pub psnr: f64,
     pub smape: f64,
+}
+
+/// The noisy input and the denoised output, each against the reference.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Comparison {
+    pub input: Metrics,
+    pub output: Metrics,
+}
+
+impl Comparison {
+    /// Metrics of `noisy` and `denoised` against `reference`, all `width * height`.
+    pub fn of(noisy: Rgb<'_>, denoised: Rgb<'_>, reference: Rgb<'_>, width: usize, height: usize) -> Comparison {
+        Comparison {
+            input: Metrics::compute(noisy, reference, width, height),
+            output: Metrics::compute(denoised, reference, width, height),
+        }
+    }
+}
+
+mod finite_or_null {
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_finite() {
+            s.serialize_f64(*v)
+        } else {
+            s.serialize_none()
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
+    }
 }
 
 pub type Rgb<'a> = [&'a [f32]; 3];

@@ -74,6 +74,23 @@ impl Priority {
     }
 }
 
+impl std::str::FromStr for Priority {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Priority, String> {
+        Priority::parse(s).ok_or_else(|| format!("unknown priority `{s}` (expected high, normal or low)"))
+    }
+}
+
+impl std::str::FromStr for JobState {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<JobState, String> {
+        JobState::parse(s)
+            .ok_or_else(|| format!("unknown state `{s}` (expected queued, running, succeeded, failed or cancelled)"))
+    }
+}
+
 /// Extra layers of the result besides `R,G,B`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -92,6 +109,14 @@ impl Layer {
 
     pub fn parse(s: &str) -> Option<Layer> {
         [Layer::Diffuse, Layer::Specular].into_iter().find(|v| v.name() == s)
+    }
+}
+
+impl std::str::FromStr for Layer {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Layer, String> {
+        Layer::parse(s).ok_or_else(|| format!("unknown layer `{s}` (expected diffuse or specular)"))
     }
 }
 
@@ -174,44 +199,11 @@ pub struct Timings {
 }
 
 /// RelMSE, DSSIM, PSNR and SMAPE of one image against the reference (see
-/// [`crate::metrics`]). PSNR of identical images is infinite and is written as `null`.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
-pub struct QualityMetrics {
-    pub relmse: f64,
-    pub dssim: f64,
-    #[serde(with = "finite_or_null")]
-    pub psnr: f64,
-    pub smape: f64,
-}
-
-impl From<crate::metrics::Metrics> for QualityMetrics {
-    fn from(m: crate::metrics::Metrics) -> Self {
-        QualityMetrics { relmse: m.relmse, dssim: m.dssim, psnr: m.psnr, smape: m.smape }
-    }
-}
-
-mod finite_or_null {
-    use serde::{Deserialize, Deserializer, Serializer};
-
-    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
-        if v.is_finite() {
-            s.serialize_f64(*v)
-        } else {
-            s.serialize_none()
-        }
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
-        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
-    }
-}
+/// [`crate::quality`]).
+pub use crate::quality::Metrics as QualityMetrics;
 
 /// Metrics of the noisy input and of the denoised output against the reference.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
-pub struct JobMetrics {
-    pub input: QualityMetrics,
-    pub output: QualityMetrics,
-}
+pub use crate::quality::Comparison as JobMetrics;
 
 /// The firefly handling a job ran with and the samples (pixel × component) it clamped.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
@@ -224,11 +216,7 @@ pub struct FireflyCounts {
 }
 
 /// Non-finite samples replaced by 0 while decoding.
-#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
-pub struct SanitizedCounts {
-    pub total: u64,
-    pub by_buffer: std::collections::BTreeMap<String, u64>,
-}
+pub use crate::frame::Sanitized as SanitizedCounts;
 
 /// Why a job failed. `code` is stable; `message` says what exactly.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]

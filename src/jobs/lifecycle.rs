@@ -1,0 +1,354 @@
+//! A job's life after admission: the final states, cancel, delete, the retention sweep
+//! and the shutdown steps. Every final state (succeeded, failed, cancelled) is reached
+//! through one path: `prepare` then `commit` (together: `settle`).
+//!
+//! Locking (see the module docs of [`crate::jobs`]): `prepare` runs under the state lock
+//! and only computes the final record (taking a queued job off the queue, so no worker
+//! claims it). `commit` holds the journal: it checks that the job is still in the state
+//! `prepare` saw, writes the record with no state lock held, then applies it in memory and
+//! sends the terminal event under the state lock. Whatever came in between (a delete, a
+//! concurrent cancel) makes the commit a no-op instead of writing a stale record.
+
+use std::sync::atomic::Ordering;
+use std::time::Duration;
+
+use super::{not_found, JobService, Journal, State};
+use crate::error::{Error, Result};
+use crate::jobs::{
+    FireflyCounts, JobError, JobErrorCode, JobEvent, JobMetrics, JobRecord, JobState, JobStatus, Phase, Progress,
+    SanitizedCounts, Timings,
+};
+
+/// The fields a successful run fills in.
+#[derive(Clone)]
+pub(super) struct Finished {
+    pub variant: crate::engine::Variant,
+    pub progress: Progress,
+    pub timings: Timings,
+    pub metrics: Option<JobMetrics>,
+    pub sanitized: SanitizedCounts,
+    pub fireflies: FireflyCounts,
+    pub missing_variances: Vec<String>,
+    pub result_bytes: u64,
+}
+
+impl Finished {
+    pub(super) fn apply(self, r: &mut JobRecord) {
+        r.state = JobState::Succeeded;
+        r.variant = Some(self.variant);
+        r.progress = self.progress;
+        r.timings = Some(self.timings);
+        r.metrics = self.metrics;
+        r.sanitized = Some(self.sanitized);
+        r.fireflies = Some(self.fireflies);
+        r.missing_variances = self.missing_variances;
+        r.error = None;
+        r.result_bytes = Some(self.result_bytes);
+    }
+}
+
+/// How a job ends.
+pub(super) enum Ending {
+    Succeeded(Box<Finished>),
+    Failed(JobError, Option<Timings>),
+    Cancelled,
+}
+
+/// A final record computed under the state lock, waiting for its commit.
+pub(super) struct Prepared {
+    id: String,
+    /// The state `prepare` saw; the commit happens only if the job is still in it.
+    from: JobState,
+    next: JobRecord,
+}
+
+impl JobService {
+    /// Computes the final record of `id` (under the caller's state lock). `None` if the job
+    /// is gone or already final.
+    pub(super) fn prepare(&self, st: &mut State, id: &str, ending: Ending) -> Option<Prepared> {
+        let entry = st.jobs.get(id)?;
+        let from = entry.record.state;
+        if from.is_terminal() {
+            return None;
+        }
+        let mut next = entry.record.clone();
+        if from == JobState::Queued && st.queue.remove(next.options.priority, next.seq) {
+            self.update_depth(st);
+        }
+        match ending {
+            Ending::Succeeded(finished) => finished.apply(&mut next),
+            Ending::Failed(error, timings) => {
+                next.state = JobState::Failed;
+                next.error = Some(error);
+                if timings.is_some() {
+                    next.timings = timings;
+                }
+            }
+            Ending::Cancelled => {
+                next.state = JobState::Cancelled;
+                next.cancel_requested = true;
+            }
+        }
+        let now = self.now();
+        next.finished_at_ms = Some(now);
+        next.expires_at_ms = Some(now + self.inner.settings.ttl_ms());
+        Some(Prepared { id: id.to_string(), from, next })
+    }
+
+    /// Makes a prepared final state durable, then visible: the record is written, the
+    /// memory updated, the terminal event sent, the uploaded frames removed. A failed
+    /// write is logged and returned, but the job ends in memory all the same (at the next
+    /// start, recovery finds the older record and runs the job again or adopts its result).
+    pub(super) fn commit(&self, _journal: &Journal<'_>, prepared: Prepared) -> Result<Option<JobStatus>> {
+        let Prepared { id, from, next } = prepared;
+        let current = self.lock().jobs.get(&id).map(|e| e.record.state);
+        if current != Some(from) {
+            // Deleted or ended by someone else since `prepare`.
+            return Ok(None);
+        }
+        let written = self.inner.store.put(&next);
+        if let Err(e) = &written {
+            tracing::error!(job_id = id.as_str(), error = %e, "cannot persist the job's end");
+        }
+        let state = next.state;
+        let run_ms = next.timings.map(|t| t.total).unwrap_or(0.0);
+        let mut guard = self.lock();
+        let st = &mut *guard;
+        let entry = st.jobs.get_mut(&id).expect("present: deletes hold the journal");
+        entry.record = next;
+        let status = JobStatus { record: entry.record.clone(), queue_position: 0 };
+        let event = match state {
+            JobState::Succeeded => JobEvent::Succeeded(Box::new(status.clone())),
+            JobState::Failed => JobEvent::Failed(Box::new(status.clone())),
+            JobState::Cancelled => {
+                entry.cancel.store(true, Ordering::SeqCst);
+                JobEvent::Cancelled(Box::new(status.clone()))
+            }
+            JobState::Queued | JobState::Running => unreachable!("prepare only makes final states"),
+        };
+        let _ = entry.events.send(event);
+        if state == JobState::Succeeded {
+            st.avg_run_ms = if st.avg_run_ms == 0.0 { run_ms } else { 0.8 * st.avg_run_ms + 0.2 * run_ms };
+        }
+        drop(guard);
+        self.inner.telemetry.job_finished(state.name());
+        self.inner.store.remove_inputs(&id);
+        match (&status.record.error, from) {
+            (Some(error), JobState::Queued) => {
+                tracing::warn!(job_id = id.as_str(), code = error.code.name(), error = %error.message, "failed while queued")
+            }
+            (Some(error), _) => {
+                tracing::warn!(job_id = id.as_str(), code = error.code.name(), error = %error.message, "failed")
+            }
+            (None, _) => tracing::info!(job_id = id.as_str(), state = state.name(), from = from.name(), "finished"),
+        }
+        written.map(|()| Some(status))
+    }
+
+    /// `prepare` and `commit` in one.
+    pub(super) fn settle(&self, journal: &Journal<'_>, id: &str, ending: Ending) -> Result<Option<JobStatus>> {
+        let prepared = self.prepare(&mut self.lock(), id, ending);
+        match prepared {
+            Some(p) => self.commit(journal, p),
+            None => Ok(None),
+        }
+    }
+
+    /// Writes the job's current in-memory record (for changes that need not be durable
+    /// before they are visible). Nothing if the job was deleted meanwhile.
+    pub(super) fn persist(&self, id: &str) {
+        let _journal = self.journal();
+        let Some(record) = self.lock().jobs.get(id).map(|e| e.record.clone()) else { return };
+        if let Err(e) = self.inner.store.put(&record) {
+            // The job still runs; after a crash it would run again, which is safe.
+            tracing::error!(job_id = id, error = %e, "cannot persist the job's state");
+        }
+    }
+
+    /// Puts a running job back in the queue (stopped by the shutdown deadline) for the next
+    /// start.
+    pub(super) fn requeue(&self, id: &str) {
+        let journal = self.journal();
+        let next = {
+            let st = self.lock();
+            let Some(entry) = st.jobs.get(id).filter(|e| e.record.state == JobState::Running) else { return };
+            let mut next = entry.record.clone();
+            next.state = JobState::Queued;
+            next.progress = Progress::default();
+            next
+        };
+        if let Err(e) = self.inner.store.put(&next) {
+            tracing::error!(job_id = id, error = %e, "cannot persist the interrupted job");
+        }
+        let mut st = self.lock();
+        st.queue.push(next.options.priority, next.seq, next.id.clone());
+        if let Some(entry) = st.jobs.get_mut(id) {
+            entry.record = next;
+        }
+        self.update_depth(&st);
+        drop(st);
+        drop(journal);
+        self.inner.telemetry.job_interrupted();
+        tracing::info!(job_id = id, "interrupted by shutdown; queued for the next start");
+    }
+
+    // --- Changes asked for by clients ------------------------------------------------------
+
+    /// Cancels a queued job at once, or asks a running one to stop at its next tile.
+    pub async fn cancel(&self, id: &str) -> Result<JobStatus> {
+        let id = id.to_string();
+        self.blocking(move |s| s.cancel_now(&id)).await
+    }
+
+    fn cancel_now(&self, id: &str) -> Result<JobStatus> {
+        let journal = self.journal();
+        let prepared = {
+            let mut st = self.lock();
+            let entry = st.jobs.get_mut(id).ok_or_else(|| not_found(id))?;
+            match entry.record.state {
+                JobState::Queued => self.prepare(&mut st, id, Ending::Cancelled),
+                JobState::Running => {
+                    entry.cancel.store(true, Ordering::SeqCst);
+                    entry.record.cancel_requested = true;
+                    tracing::info!(job_id = id, "cancellation requested");
+                    let entry = &st.jobs[id];
+                    return Ok(self.status_of(&st, entry));
+                }
+                s @ (JobState::Succeeded | JobState::Failed | JobState::Cancelled) => {
+                    return Err(Error::Conflict(format!("job {id} has already {}", s.name())))
+                }
+            }
+        };
+        let status = prepared.map(|p| self.commit(&journal, p)).transpose()?.flatten();
+        status.ok_or_else(|| not_found(id))
+    }
+
+    /// Removes a job with its files (a running job is cancelled first).
+    pub async fn delete(&self, id: &str) -> Result<()> {
+        let id = id.to_string();
+        self.blocking(move |s| s.delete_now(&id)).await
+    }
+
+    fn delete_now(&self, id: &str) -> Result<()> {
+        let journal = self.journal();
+        if !self.lock().jobs.contains_key(id) {
+            return Err(not_found(id));
+        }
+        self.inner.store.remove(&[id])?;
+        let mut st = self.lock();
+        let entry = st.jobs.remove(id).expect("present: deletes hold the journal");
+        entry.cancel.store(true, Ordering::SeqCst);
+        let r = &entry.record;
+        if r.state == JobState::Queued && st.queue.remove(r.options.priority, r.seq) {
+            self.update_depth(&st);
+        }
+        if let Some(key) = &r.options.idempotency_key {
+            st.keys.remove(key);
+        }
+        drop(st);
+        drop(journal);
+        // Dropping `entry` closes its event channel: watchers' streams end.
+        drop(entry);
+        self.inner.store.remove_files(id);
+        tracing::info!(job_id = id, "deleted");
+        Ok(())
+    }
+
+    /// Removes finished jobs past their retention time and fails queued jobs past their
+    /// deadline. Returns how many jobs were removed.
+    pub async fn sweep(&self) -> Result<usize> {
+        self.blocking(JobService::sweep_now).await
+    }
+
+    fn sweep_now(&self) -> Result<usize> {
+        let journal = self.journal();
+        let now = self.now();
+        let (expired, overdue) = {
+            let mut st = self.lock();
+            let expired: Vec<String> = st
+                .jobs
+                .values()
+                .filter(|e| e.record.state.is_terminal() && e.record.expires_at_ms.is_some_and(|t| t <= now))
+                .map(|e| e.record.id.clone())
+                .collect();
+            let overdue: Vec<String> = st
+                .jobs
+                .values()
+                .filter(|e| e.record.state == JobState::Queued && e.record.deadline_at_ms.is_some_and(|t| t <= now))
+                .map(|e| e.record.id.clone())
+                .collect();
+            let overdue: Vec<_> =
+                overdue.iter().filter_map(|id| self.prepare(&mut st, id, deadline_passed())).collect();
+            (expired, overdue)
+        };
+        if !expired.is_empty() {
+            let ids: Vec<&str> = expired.iter().map(String::as_str).collect();
+            self.inner.store.remove(&ids)?;
+            let mut st = self.lock();
+            for id in &expired {
+                if let Some(entry) = st.jobs.remove(id) {
+                    if let Some(key) = &entry.record.options.idempotency_key {
+                        st.keys.remove(key);
+                    }
+                }
+            }
+        }
+        let mut failure = None;
+        for prepared in overdue {
+            if let Err(e) = self.commit(&journal, prepared) {
+                failure = Some(e);
+            }
+        }
+        drop(journal);
+        for id in &expired {
+            self.inner.store.remove_files(id);
+            tracing::info!(job_id = id.as_str(), "expired and removed");
+        }
+        match failure {
+            Some(e) => Err(e),
+            None => Ok(expired.len()),
+        }
+    }
+
+    // --- Shutdown --------------------------------------------------------------------------
+
+    /// Stops admitting jobs and starting queued ones; readiness turns false.
+    pub fn begin_drain(&self) {
+        let _st = self.lock();
+        if matches!(self.phase(), Phase::Loading | Phase::Ready) {
+            self.set_phase(Phase::Draining);
+        }
+        self.inner.work.notify_all();
+    }
+
+    /// Waits until no job is running, at most `timeout`. True if idle.
+    pub async fn wait_idle(&self, timeout: Duration) -> bool {
+        let mut rx = self.inner.running.subscribe();
+        let idle = tokio::time::timeout(timeout, rx.wait_for(|n| *n == 0)).await.is_ok();
+        idle
+    }
+
+    /// Makes running jobs stop at their next tile; they go back to the queue (persisted)
+    /// and run again at the next start.
+    pub fn abort_running(&self) {
+        self.inner.abort.store(true, Ordering::SeqCst);
+    }
+
+    /// Tells the workers to exit once their current job is over.
+    pub fn stop_workers(&self) {
+        let _st = self.lock();
+        self.set_phase(Phase::Stopped);
+        self.inner.work.notify_all();
+    }
+}
+
+/// The failure of a job whose deadline passed before it started.
+pub(super) fn deadline_passed() -> Ending {
+    Ending::Failed(
+        JobError {
+            code: JobErrorCode::DeadlineExceeded,
+            message: "the job's deadline passed while it was queued".into(),
+        },
+        None,
+    )
+}

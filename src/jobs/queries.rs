@@ -1,0 +1,124 @@
+//! Reads: one job, a filtered page of jobs, a job's events, a job's result.
+//!
+//! Locking: every read takes the state lock once, briefly, and never waits for the disk
+//! (`open_result` opens the file on the blocking pool, after the lock is released).
+
+use futures_util::stream::{self, BoxStream, StreamExt};
+use tokio::sync::broadcast;
+
+use super::{not_found, Entry, JobService};
+use crate::error::{Error, Result};
+use crate::jobs::{JobEvent, JobState, JobStatus, Priority};
+
+/// Filters of [`JobService::list`].
+#[derive(Clone, Debug, Default)]
+pub struct ListFilter {
+    pub state: Option<JobState>,
+    pub priority: Option<Priority>,
+    pub label: Option<String>,
+    pub limit: Option<usize>,
+    pub after: Option<String>,
+}
+
+impl JobService {
+    pub fn get(&self, id: &str) -> Result<JobStatus> {
+        let st = self.lock();
+        let entry = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        Ok(self.status_of(&st, entry))
+    }
+
+    /// Jobs in submission order, filtered; `after` is the `next_page_token` of the
+    /// previous page.
+    pub fn list(&self, filter: &ListFilter) -> Result<(Vec<JobStatus>, Option<String>)> {
+        let after = match filter.after.as_deref() {
+            None | Some("") => None,
+            Some(t) => Some(t.parse::<u64>().map_err(|_| Error::BadRequest(format!("bad page token `{t}`")))?),
+        };
+        let limit = filter.limit.unwrap_or(100).clamp(1, 1000);
+        let st = self.lock();
+        let mut matching: Vec<&Entry> = st
+            .jobs
+            .values()
+            .filter(|e| {
+                let r = &e.record;
+                after.is_none_or(|a| r.seq > a)
+                    && filter.state.is_none_or(|s| r.state == s)
+                    && filter.priority.is_none_or(|p| r.options.priority == p)
+                    && filter.label.as_deref().is_none_or(|l| r.options.label.as_deref() == Some(l))
+            })
+            .collect();
+        matching.sort_by_key(|e| e.record.seq);
+        let more = matching.len() > limit;
+        matching.truncate(limit);
+        let next = if more { matching.last().map(|e| e.record.seq.to_string()) } else { None };
+        Ok((matching.into_iter().map(|e| self.status_of(&st, e)).collect(), next))
+    }
+
+    /// The current status and a receiver of every later event, taken atomically.
+    pub fn watch(&self, id: &str) -> Result<(JobStatus, broadcast::Receiver<JobEvent>)> {
+        let st = self.lock();
+        let entry = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        Ok((self.status_of(&st, entry), entry.events.subscribe()))
+    }
+
+    /// The job's events: its current state first (`queued`; or `started` and `progress`;
+    /// or the terminal event), then every change, ending after the terminal event (or
+    /// when the job is deleted).
+    pub fn events(&self, id: &str) -> Result<BoxStream<'static, JobEvent>> {
+        let (status, rx) = self.watch(id)?;
+        let r = &status.record;
+        let initial = match r.state {
+            JobState::Queued => vec![JobEvent::Queued { status: Box::new(status.clone()) }],
+            JobState::Running => vec![JobEvent::Started { attempt: r.attempts }, JobEvent::Progress(r.progress)],
+            JobState::Succeeded | JobState::Failed | JobState::Cancelled => {
+                let terminal = JobEvent::terminal(status).expect("terminal state");
+                return Ok(stream::iter([terminal]).boxed());
+            }
+        };
+        let live = stream::unfold(Some(rx), |rx| async move {
+            let mut rx = rx?;
+            loop {
+                match rx.recv().await {
+                    Ok(ev) => {
+                        let next = if ev.is_terminal() { None } else { Some(rx) };
+                        return Some((ev, next));
+                    }
+                    Err(broadcast::error::RecvError::Lagged(_)) => continue,
+                    Err(broadcast::error::RecvError::Closed) => return None,
+                }
+            }
+        });
+        Ok(stream::iter(initial).chain(live).boxed())
+    }
+
+    /// Opens the result of a succeeded job: the file and its size.
+    pub async fn open_result(&self, id: &str) -> Result<(tokio::fs::File, u64)> {
+        {
+            let st = self.lock();
+            let entry = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+            match entry.record.state {
+                JobState::Succeeded => {}
+                s => {
+                    return Err(Error::Conflict(format!(
+                        "job {id} is {}; a result exists only once it has succeeded",
+                        s.name()
+                    )))
+                }
+            }
+        }
+        let path = self.inner.store.result_path(id);
+        let id = id.to_string();
+        let (file, len) = self
+            .blocking(move |_| {
+                let file = std::fs::File::open(&path).map_err(|e| match e.kind() {
+                    // Deleted or expired since the check above.
+                    std::io::ErrorKind::NotFound => not_found(&id),
+                    _ => Error::internal(&format!("cannot open {}", path.display()), e),
+                })?;
+                let len = file.metadata().map_err(|e| Error::internal("cannot stat the result", e))?.len();
+                Ok((file, len))
+            })
+            .await?;
+        Ok((tokio::fs::File::from_std(file), len))
+    }
+}

@@ -1,0 +1,430 @@
+//! The job lifecycle with a fake denoiser and tokio's paused clock: admission, priorities,
+//! cancel while queued and while running, deadlines, retention, recovery after a crash.
+//! No model and no ONNX Runtime: each test runs in milliseconds.
+//!
+//! The fake denoiser takes one permit from a [`Gate`] per tile, so a test decides when a
+//! running job moves on. Time moves only with `tokio::time::advance`; the core reads it
+//! through its clock (deadlines, retention), the workers' threads included.
+
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use futures_util::StreamExt;
+
+use super::store::{self, Store};
+use super::*;
+use crate::engine::{Component, Denoised, Denoiser, EngineError, ModelInfo, Progress as TileProgress, Variant};
+use crate::frame::{Frame, SampleType};
+
+/// Permits for tiles: the fake denoiser waits for one before each tile.
+#[derive(Default)]
+struct Gate {
+    /// `None`: open, no waiting.
+    permits: Mutex<Option<u64>>,
+    changed: Condvar,
+}
+
+impl Gate {
+    fn closed() -> Arc<Gate> {
+        Arc::new(Gate { permits: Mutex::new(Some(0)), changed: Condvar::new() })
+    }
+
+    fn release(&self, n: u64) {
+        if let Some(p) = self.permits.lock().unwrap().as_mut() {
+            *p += n;
+        }
+        self.changed.notify_all();
+    }
+
+    fn open(&self) {
+        *self.permits.lock().unwrap() = None;
+        self.changed.notify_all();
+    }
+
+    fn take(&self) {
+        let mut permits = self.permits.lock().unwrap();
+        loop {
+            match permits.as_mut() {
+                None => return,
+                Some(p) if *p > 0 => {
+                    *p -= 1;
+                    return;
+                }
+                Some(_) => permits = self.changed.wait(permits).unwrap(),
+            }
+        }
+    }
+}
+
+/// Denoises by copying the frame's diffuse + specular, tile by tile through the gate, and
+/// notes the width of every frame it is given (tests tell jobs apart by width).
+struct FakeDenoiser {
+    gate: Arc<Gate>,
+    tile: usize,
+    seen: Arc<Mutex<Vec<usize>>>,
+}
+
+impl Denoiser for FakeDenoiser {
+    fn models(&self) -> Vec<ModelInfo> {
+        vec![ModelInfo {
+            variant: Variant::Nocov,
+            component: Some(Component::Diffuse),
+            contract: 1,
+            features: crate::engine::FeatureSet::Nocov,
+            path: "fake.onnx".into(),
+            kernel_size: 21,
+            levels: 1,
+            receptive_radius: 0,
+            flops_per_pixel: 1.0,
+            architecture: "fake".into(),
+            sha256: String::new(),
+        }]
+    }
+
+    fn denoise(
+        &mut self,
+        frame: &Frame,
+        variant: Option<Variant>,
+        _fireflies: crate::engine::Fireflies,
+        on_tile: &mut dyn FnMut(TileProgress) -> bool,
+    ) -> Result<Denoised, EngineError> {
+        self.seen.lock().unwrap().push(frame.width);
+        let tiles = crate::engine::tile_grid(frame.width, frame.height, self.tile).len();
+        for done in 1..=tiles {
+            self.gate.take();
+            if !on_tile(TileProgress { tiles_done: done, tiles_total: tiles }) && done < tiles {
+                return Err(EngineError::Cancelled);
+            }
+        }
+        let color = frame.diffuse_plus_specular();
+        Ok(Denoised {
+            width: frame.width,
+            height: frame.height,
+            variant: variant.unwrap_or(Variant::Nocov),
+            color: color.clone(),
+            diffuse: color.clone(),
+            specular: color,
+            tiles,
+            timings: Default::default(),
+            fireflies: Default::default(),
+        })
+    }
+}
+
+const TILE: usize = 32;
+
+fn settings(capacity: usize) -> Settings {
+    let mut engine = EngineConfig::new("fake-models");
+    engine.tile = TILE;
+    Settings {
+        capacity,
+        result_ttl: Duration::from_secs(60),
+        default_deadline: None,
+        limits: Limits::default(),
+        max_body_bytes: 1 << 20,
+        max_uploads_per_client: 16,
+        max_jobs_per_client: usize::MAX,
+        workers: 1,
+        engine,
+        fireflies: Default::default(),
+    }
+}
+
+/// Unix milliseconds that follow tokio's (paused) clock, read from any thread.
+fn paused_clock() -> Clock {
+    let handle = tokio::runtime::Handle::current();
+    let (start_ms, start) = (now_ms(), tokio::time::Instant::now());
+    Arc::new(move || {
+        let _runtime = handle.enter();
+        start_ms + (tokio::time::Instant::now() - start).as_millis() as i64
+    })
+}
+
+struct Harness {
+    service: JobService,
+    workers: Vec<JoinHandle<()>>,
+    gate: Arc<Gate>,
+    seen: Arc<Mutex<Vec<usize>>>,
+    dir: tempfile::TempDir,
+}
+
+impl Harness {
+    async fn start(settings: Settings, gate: Arc<Gate>) -> Harness {
+        Harness::start_in(tempfile::tempdir().unwrap(), settings, gate).await
+    }
+
+    async fn start_in(dir: tempfile::TempDir, settings: Settings, gate: Arc<Gate>) -> Harness {
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let (g, s) = (gate.clone(), seen.clone());
+        let denoisers: DenoiserFactory = Arc::new(move || {
+            Ok(Box::new(FakeDenoiser { gate: g.clone(), tile: TILE, seen: s.clone() }) as Box<dyn Denoiser>)
+        });
+        let (service, workers) =
+            JobService::start_with_clock(dir.path(), settings, Arc::new(Telemetry::new()), denoisers, paused_clock())
+                .unwrap();
+        // No timeout here: under the paused clock it would fire at once.
+        service.subscribe_phase().wait_for(|p| *p == Phase::Ready).await.unwrap();
+        Harness { service, workers, gate, seen, dir }
+    }
+
+    /// Uploads a synthetic frame `width` pixels wide and commits it.
+    async fn submit(&self, width: usize, options: JobOptions) -> Result<Admitted> {
+        let client = ClientId("test".into());
+        let mut ticket = match self.service.admit(options, "test", &client)? {
+            Admission::Existing(status) => return Ok(Admitted::Existing(status)),
+            Admission::New(t) => t,
+        };
+        let mut sink = ticket.sink(UploadPart::Frame).await?;
+        sink.write(&frame_bytes(width, 16)).await?;
+        ticket.finish(sink).await?;
+        Ok(Admitted::New(ticket.commit().await?))
+    }
+
+    async fn submit_new(&self, width: usize, options: JobOptions) -> String {
+        match self.submit(width, options).await.unwrap() {
+            Admitted::New(s) => s.record.id,
+            Admitted::Existing(s) => panic!("expected a new job, got {}", s.record.id),
+        }
+    }
+
+    /// Waits (on the job's events, not on time) until `pred` holds for its status.
+    async fn until(&self, id: &str, what: &str, pred: impl Fn(&JobStatus) -> bool) -> JobStatus {
+        let mut events = self.service.events(id).unwrap();
+        loop {
+            let status = self.service.get(id).unwrap();
+            if pred(&status) {
+                return status;
+            }
+            assert!(events.next().await.is_some(), "job {id} ended its events before it was {what}: {status:?}");
+        }
+    }
+
+    async fn until_state(&self, id: &str, state: JobState) -> JobStatus {
+        self.until(id, state.name(), |s| s.record.state == state).await
+    }
+
+    fn stop(self) {
+        self.gate.open();
+        self.service.begin_drain();
+        self.service.stop_workers();
+        for w in self.workers {
+            w.join().unwrap();
+        }
+    }
+}
+
+#[derive(Debug)]
+enum Admitted {
+    New(JobStatus),
+    Existing(JobStatus),
+}
+
+fn frame_bytes(w: usize, h: usize) -> Vec<u8> {
+    let planes = crate::engine::synthetic_planes(w, h, false);
+    let named = planes.iter().map(|(n, p)| (n.as_str(), p.as_slice()));
+    crate::frame::write_planes(w, h, named, SampleType::F32, exr::prelude::Encoding::FAST_LOSSLESS).unwrap()
+}
+
+fn options(priority: Priority) -> JobOptions {
+    JobOptions { priority, ..Default::default() }
+}
+
+#[tokio::test(start_paused = true)]
+async fn admission_refuses_over_capacity_replays_keys_and_runs_by_priority() {
+    let h = Harness::start(settings(3), Gate::closed()).await;
+    // 40 px wide: runs first and holds the worker.
+    let first = h.submit_new(40, options(Priority::Normal)).await;
+    h.until_state(&first, JobState::Running).await;
+    let low = h.submit_new(41, options(Priority::Low)).await;
+    let keyed = JobOptions { idempotency_key: Some("shot-1".into()), ..options(Priority::High) };
+    let high = h.submit_new(42, keyed.clone()).await;
+    match h.submit(99, keyed).await.unwrap() {
+        Admitted::Existing(s) => assert_eq!(s.record.id, high, "a retried key returns the same job"),
+        Admitted::New(s) => panic!("a retried key made a second job {}", s.record.id),
+    }
+    let normal = h.submit_new(43, options(Priority::Normal)).await;
+    let positions: Vec<u64> =
+        [&high, &normal, &low].iter().map(|id| h.service.get(id).unwrap().queue_position).collect();
+    assert_eq!(positions, [1, 2, 3]);
+    match h.submit(44, options(Priority::High)).await {
+        Err(Error::QueueFull { capacity: 3, retry_after_s }) => assert!(retry_after_s >= 1),
+        other => panic!("expected a full queue, got {other:?}"),
+    }
+    h.gate.open();
+    for id in [&first, &high, &normal, &low] {
+        let s = h.until_state(id, JobState::Succeeded).await;
+        assert_eq!(s.record.attempts, 1);
+        assert!(h.dir.path().join("jobs").join(id).join("result.exr").is_file());
+    }
+    assert_eq!(*h.seen.lock().unwrap(), [40, 42, 43, 41], "high, then normal, then low; FIFO within a class");
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
+async fn cancel_ends_a_queued_job_at_once_and_a_running_one_at_its_next_tile() {
+    let h = Harness::start(settings(8), Gate::closed()).await;
+    let running = h.submit_new(64, options(Priority::Normal)).await;
+    h.until_state(&running, JobState::Running).await;
+    let queued = h.submit_new(32, options(Priority::Normal)).await;
+
+    let s = h.service.cancel(&queued).await.unwrap();
+    assert_eq!(s.record.state, JobState::Cancelled);
+    assert!(s.record.cancel_requested && s.record.finished_at_ms.is_some());
+    assert!(!h.dir.path().join("jobs").join(&queued).join("input.exr").exists(), "inputs removed");
+    assert!(matches!(h.service.cancel(&queued).await, Err(Error::Conflict(_))));
+
+    let s = h.service.cancel(&running).await.unwrap();
+    assert_eq!((s.record.state, s.record.cancel_requested), (JobState::Running, true));
+    h.gate.release(1);
+    let s = h.until_state(&running, JobState::Cancelled).await;
+    assert_eq!(s.record.progress.tiles_done, 1, "stopped after its first of two tiles");
+    assert!(matches!(h.service.open_result(&running).await, Err(Error::Conflict(_))));
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
+async fn deadlines_fail_queued_jobs_in_the_sweep_and_running_jobs_between_tiles() {
+    let h = Harness::start(settings(8), Gate::closed()).await;
+    let running = h.submit_new(64, JobOptions { deadline_seconds: Some(10), ..Default::default() }).await;
+    h.until_state(&running, JobState::Running).await;
+    let queued = h.submit_new(32, JobOptions { deadline_seconds: Some(5), ..Default::default() }).await;
+
+    tokio::time::advance(Duration::from_secs(4)).await;
+    h.service.sweep().await.unwrap();
+    assert_eq!(h.service.get(&queued).unwrap().record.state, JobState::Queued);
+    tokio::time::advance(Duration::from_secs(2)).await;
+    h.service.sweep().await.unwrap();
+    let s = h.service.get(&queued).unwrap();
+    assert_eq!(s.record.state, JobState::Failed);
+    let error = s.record.error.unwrap();
+    assert_eq!(error.code, JobErrorCode::DeadlineExceeded);
+    assert!(error.message.contains("while it was queued"), "{}", error.message);
+
+    tokio::time::advance(Duration::from_secs(5)).await;
+    h.gate.release(1);
+    let s = h.until_state(&running, JobState::Failed).await;
+    let error = s.record.error.unwrap();
+    assert_eq!(error.code, JobErrorCode::DeadlineExceeded);
+    assert!(error.message.contains("while it ran"), "{}", error.message);
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
+async fn finished_jobs_are_kept_for_the_retention_time_then_removed() {
+    let gate = Gate::closed();
+    gate.open();
+    let h = Harness::start(settings(8), gate).await;
+    let id = h.submit_new(32, JobOptions { label: Some("kept".into()), ..Default::default() }).await;
+    let s = h.until_state(&id, JobState::Succeeded).await;
+    assert_eq!(s.record.expires_at_ms.unwrap() - s.record.finished_at_ms.unwrap(), 60_000);
+    let (_file, len) = h.service.open_result(&id).await.unwrap();
+    assert_eq!(Some(len), s.record.result_bytes);
+
+    tokio::time::advance(Duration::from_secs(59)).await;
+    assert_eq!(h.service.sweep().await.unwrap(), 0);
+    tokio::time::advance(Duration::from_secs(2)).await;
+    assert_eq!(h.service.sweep().await.unwrap(), 1);
+    assert!(matches!(h.service.get(&id), Err(Error::NotFound(_))));
+    assert!(!h.dir.path().join("jobs").join(&id).exists(), "its files go too");
+    h.stop();
+}
+
+fn record(id: &str, seq: u64, state: JobState) -> JobRecord {
+    JobRecord {
+        id: id.into(),
+        seq,
+        state,
+        options: JobOptions::default(),
+        width: 32,
+        height: 16,
+        input_bytes: 1,
+        has_reference: false,
+        created_at_ms: now_ms(),
+        started_at_ms: None,
+        finished_at_ms: None,
+        deadline_at_ms: None,
+        expires_at_ms: None,
+        attempts: u32::from(state != JobState::Queued),
+        cancel_requested: false,
+        variant: None,
+        progress: Progress::default(),
+        timings: None,
+        metrics: None,
+        sanitized: None,
+        fireflies: None,
+        missing_variances: Vec::new(),
+        error: None,
+        result_bytes: None,
+        client: None,
+    }
+}
+
+#[tokio::test(start_paused = true)]
+async fn recovery_after_a_crash_requeues_adopts_fails_and_forgets_as_documented() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        // The store as a killed daemon leaves it.
+        let store = Store::open(dir.path()).unwrap();
+        let write = |id: &str, name: &str, bytes: &[u8]| {
+            std::fs::create_dir_all(store.job_dir(id)).unwrap();
+            std::fs::write(store.job_dir(id).join(name), bytes).unwrap();
+        };
+        // Interrupted while running: queued again, with a half-written result to clean up.
+        store.put(&record("interrupted", 1, JobState::Running)).unwrap();
+        write("interrupted", "input.exr", &frame_bytes(32, 16));
+        write("interrupted", "result.exr.part", b"half");
+        // Finished just before the crash: its summary and result are adopted.
+        let mut done = record("finished", 2, JobState::Succeeded);
+        done.result_bytes = Some(4);
+        store.put(&record("finished", 2, JobState::Running)).unwrap();
+        write("finished", "result.json", &serde_json::to_vec(&done).unwrap());
+        write("finished", "result.exr", b"done");
+        write("finished", "input.exr", &frame_bytes(32, 16));
+        // Queued, but its upload is gone.
+        store.put(&record("lost", 3, JobState::Queued)).unwrap();
+        // Expired while the daemon was down.
+        let mut old = record("expired", 4, JobState::Failed);
+        old.expires_at_ms = Some(now_ms() - 1);
+        store.put(&old).unwrap();
+        write("expired", "result.json", b"{}");
+        // An upload cut short: files without a record.
+        write("orphan", "input.exr.part", b"partial");
+    }
+    let gate = Gate::closed();
+    gate.open();
+    let h = Harness::start_in(dir, settings(8), gate).await;
+
+    let s = h.until_state("interrupted", JobState::Succeeded).await;
+    assert_eq!(s.record.attempts, 2, "ran again after the interrupted attempt");
+    let s = h.service.get("finished").unwrap();
+    assert_eq!((s.record.state, s.record.result_bytes), (JobState::Succeeded, Some(4)));
+    assert_eq!(h.seen.lock().unwrap().len(), 1, "the adopted job did not run again");
+    let s = h.service.get("lost").unwrap();
+    assert_eq!(s.record.state, JobState::Failed);
+    assert!(s.record.error.unwrap().message.contains("uploaded frame is missing"));
+    assert!(matches!(h.service.get("expired"), Err(Error::NotFound(_))));
+    let jobs = h.dir.path().join("jobs");
+    assert!(!jobs.join("expired").exists() && !jobs.join("orphan").exists());
+    assert!(!jobs.join("interrupted").join("result.exr.part").exists());
+    assert!(!store::part_path(&jobs.join("finished").join("result.exr")).exists());
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
+async fn deleting_a_running_job_removes_it_and_its_files_when_the_run_ends() {
+    let h = Harness::start(settings(8), Gate::closed()).await;
+    let id = h.submit_new(64, options(Priority::Normal)).await;
+    let mut events = h.service.events(&id).unwrap();
+    h.until_state(&id, JobState::Running).await;
+    h.service.delete(&id).await.unwrap();
+    assert!(matches!(h.service.get(&id), Err(Error::NotFound(_))));
+    while events.next().await.is_some() {}
+    h.gate.release(2);
+    // The worker notices at its next tile; then nothing of the job is left.
+    let next = h.submit_new(32, options(Priority::Normal)).await;
+    h.gate.open();
+    h.until_state(&next, JobState::Succeeded).await;
+    assert!(!h.dir.path().join("jobs").join(&id).exists());
+    h.stop();
+}
