@@ -1,7 +1,6 @@
 //! The offline commands: denoise one file, or write the preprocessed tensors of one file
 //! for training.
 
-use std::fs;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -137,18 +136,9 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
-/// A temporary name beside `path`, unique to this process, so that concurrent writers of
-/// the same file do not collide.
-fn temporary_beside(path: &Path) -> PathBuf {
-    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("tmp");
-    path.with_extension(format!("{ext}.{}.part", std::process::id()))
-}
-
-/// Writes a file atomically: to a temporary name beside it, then renamed.
+/// Writes a file atomically ([`crate::atomic`]).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = temporary_beside(path);
-    fs::write(&tmp, bytes).with_context(|| format!("cannot write {}", tmp.display()))?;
-    fs::rename(&tmp, path).with_context(|| format!("cannot rename {} to {}", tmp.display(), path.display()))
+    crate::atomic::write(path, bytes).with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// `mcdenoise run`: denoise one frame, print a JSON report on stdout.
@@ -280,8 +270,8 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     let albedo = frame.planes(Buffer::Albedo);
     let noisy = frame.diffuse_plus_specular();
 
-    let tmp = temporary_beside(&args.output);
-    let file = fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
+    let file = crate::atomic::File::create(&args.output)
+        .with_context(|| format!("cannot create {}", args.output.display()))?;
     let mut npz = ndarray_npy::NpzWriter::new(file);
     npz.add_array("diffuse_color", &shaped(inputs.diffuse)?)?;
     npz.add_array("specular_color", &shaped(inputs.specular)?)?;
@@ -306,8 +296,7 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
         npz.add_array("specular_target", &shaped(s_target)?)?;
         npz.add_array("reference", &shaped(stack([&rc[0], &rc[1], &rc[2]]))?)?;
     }
-    npz.finish()?;
-    fs::rename(&tmp, &args.output).with_context(|| format!("cannot rename to {}", args.output.display()))?;
+    npz.finish()?.commit().with_context(|| format!("cannot write {}", args.output.display()))?;
     eprintln!(
         "wrote {} ({}x{}, variant {}, {} firefly samples handled)",
         args.output.display(),

@@ -13,10 +13,14 @@ use hyper::body::{Frame, Incoming};
 use hyper::{Method, Request, Response, StatusCode};
 use hyper_util::client::legacy::{connect::HttpConnector, Client};
 use hyper_util::rt::TokioExecutor;
-use serde_json::{json, Value};
+use serde_json::Value;
 
+use crate::atomic::AsyncFile;
 use crate::config::Secret;
+use crate::engine::Variant;
 use crate::grpc::pb;
+use crate::jobs::{JobOptions, JobState, Layer};
+use crate::wire::{JobView, OptionsQuery};
 
 #[derive(Args, Debug, Clone)]
 pub struct SubmitArgs {
@@ -52,6 +56,12 @@ pub struct SubmitArgs {
     /// Seconds after which the job fails (default: the daemon's).
     #[arg(long)]
     pub deadline_seconds: Option<u64>,
+    /// Firefly handling: auto or off (default: the daemon's; docs/fireflies.md).
+    #[arg(long)]
+    pub fireflies: Option<String>,
+    /// Strength of the firefly handling, 0.1 to 10 (default: the daemon's).
+    #[arg(long)]
+    pub firefly_strength: Option<f32>,
     /// Bearer token, when the daemon requires one.
     #[arg(long, env = "MCDENOISE_TOKEN", hide_env_values = true)]
     pub token: Option<Secret>,
@@ -106,23 +116,48 @@ pub fn submit(args: SubmitArgs) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let job = runtime.block_on(submit_async(args))?;
     println!("{}", serde_json::to_string_pretty(&job)?);
-    match job["state"].as_str() {
-        Some("failed") => bail!("the job failed: {}", job["error"]["message"].as_str().unwrap_or("unknown reason")),
-        Some("cancelled") => bail!("the job was cancelled"),
-        _ => Ok(()),
+    match job.state {
+        JobState::Failed => {
+            bail!("the job failed: {}", job.error.map(|e| e.message).unwrap_or_else(|| "unknown reason".into()))
+        }
+        JobState::Cancelled => bail!("the job was cancelled"),
+        JobState::Queued | JobState::Running | JobState::Succeeded => Ok(()),
     }
 }
 
-/// Submits, optionally waits and downloads; returns the job's JSON.
-pub async fn submit_async(args: SubmitArgs) -> Result<Value> {
+impl SubmitArgs {
+    /// The job's options, each value checked (with the daemon's messages).
+    pub fn options(&self) -> Result<JobOptions> {
+        let layers = self.layers.iter().map(|l| l.parse()).collect::<Result<Vec<Layer>, String>>();
+        Ok(JobOptions {
+            priority: self.priority.parse().map_err(anyhow::Error::msg)?,
+            layers: layers.map_err(anyhow::Error::msg)?,
+            idempotency_key: self.idempotency_key.clone(),
+            label: self.label.clone(),
+            variant: Variant::parse_choice(&self.variant).map_err(anyhow::Error::msg)?,
+            deadline_seconds: self.deadline_seconds,
+            fireflies: self.fireflies.as_deref().map(str::parse).transpose().map_err(anyhow::Error::msg)?,
+            firefly_strength: self.firefly_strength,
+        })
+    }
+}
+
+/// Submits, optionally waits and downloads; returns the job.
+pub async fn submit_async(args: SubmitArgs) -> Result<JobView> {
     let wait = args.wait || args.output.is_some();
+    let options = args.options()?;
     if let Some(rest) = args.server.strip_prefix("grpc://") {
-        submit_grpc(&args, rest, wait).await
+        submit_grpc(&args, &options, rest, wait).await
     } else if args.server.starts_with("http://") {
-        submit_http(&args, wait).await
+        submit_http(&args, &options, wait).await
     } else {
         bail!("--server must start with http:// or grpc:// (got {})", args.server)
     }
+}
+
+/// A job from an answer's JSON.
+fn job_view(v: Value) -> Result<JobView> {
+    serde_json::from_value(v).context("the daemon's answer is not a job")
 }
 
 // --- HTTP ----------------------------------------------------------------------------------
@@ -248,9 +283,7 @@ pub async fn read_sse(resp: Response<Incoming>, mut on_event: impl FnMut(SseEven
 
 /// Streams a response body into `path` atomically (`.part`, fsync, rename).
 pub async fn save_body(resp: Response<Incoming>, path: &Path) -> Result<u64> {
-    use tokio::io::AsyncWriteExt;
-    let tmp = crate::jobs::store::part_path(path);
-    let mut file = tokio::fs::File::create(&tmp).await.with_context(|| format!("cannot create {}", tmp.display()))?;
+    let mut file = AsyncFile::create(path).await.with_context(|| format!("cannot create {}", path.display()))?;
     let mut body = resp.into_body();
     let mut n = 0u64;
     while let Some(frame) = body.frame().await {
@@ -259,38 +292,12 @@ pub async fn save_body(resp: Response<Incoming>, path: &Path) -> Result<u64> {
             n += data.len() as u64;
         }
     }
-    file.sync_all().await?;
-    drop(file);
-    tokio::fs::rename(&tmp, path).await.with_context(|| format!("cannot write {}", path.display()))?;
+    file.commit().await.with_context(|| format!("cannot write {}", path.display()))?;
     Ok(n)
 }
 
-fn query_string(args: &SubmitArgs) -> String {
-    let mut q = vec![format!("priority={}", args.priority)];
-    if !args.layers.is_empty() {
-        q.push(format!("layers={}", args.layers.join(",")));
-    }
-    if args.variant != "auto" {
-        q.push(format!("variant={}", args.variant));
-    }
-    if let Some(d) = args.deadline_seconds {
-        q.push(format!("deadline_seconds={d}"));
-    }
-    if let Some(l) = &args.label {
-        q.push(format!("label={}", percent_encode(l)));
-    }
-    q.join("&")
-}
-
 /// Percent-encodes everything but RFC 3986's unreserved characters.
-pub fn percent_encode(s: &str) -> String {
-    s.bytes()
-        .map(|b| match b {
-            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'-' | b'_' | b'.' | b'~' => (b as char).to_string(),
-            _ => format!("%{b:02X}"),
-        })
-        .collect()
-}
+pub use crate::wire::percent_encode;
 
 /// A multipart body: an `options` JSON part and file parts, streamed; returns its
 /// content type and length.
@@ -327,7 +334,7 @@ pub async fn multipart_body(options: &Value, files: &[(&str, &Path)]) -> Result<
     Ok((BodyExt::boxed(StreamBody::new(stream)), format!("multipart/form-data; boundary={boundary}"), len))
 }
 
-async fn submit_http(args: &SubmitArgs, wait: bool) -> Result<Value> {
+async fn submit_http(args: &SubmitArgs, options: &JobOptions, wait: bool) -> Result<JobView> {
     let client = HttpClient::new(&args.server, args.token.as_ref().map(|t| t.0.as_str()));
     let mut line = ProgressLine::new(args.quiet);
     let (status, job) = match &args.reference {
@@ -338,17 +345,12 @@ async fn submit_http(args: &SubmitArgs, wait: bool) -> Result<Value> {
             if let Some(k) = &args.idempotency_key {
                 headers.push(("idempotency-key", k.as_str()));
             }
-            client.json(Method::POST, &format!("/v1/jobs?{}", query_string(args)), &headers, body).await?
+            // The key goes in its header.
+            let query = OptionsQuery { idempotency_key: None, ..OptionsQuery::from(options) };
+            client.json(Method::POST, &format!("/v1/jobs?{}", query.encode()), &headers, body).await?
         }
         Some(reference) => {
-            let options = json!({
-                "priority": args.priority,
-                "layers": args.layers,
-                "label": args.label,
-                "idempotency_key": args.idempotency_key,
-                "variant": if args.variant == "auto" { Value::Null } else { json!(args.variant) },
-                "deadline_seconds": args.deadline_seconds,
-            });
+            let options = serde_json::to_value(options)?;
             let (body, content_type, len) =
                 multipart_body(&options, &[("frame", &args.frame), ("reference", reference)]).await?;
             let len = len.to_string();
@@ -360,7 +362,8 @@ async fn submit_http(args: &SubmitArgs, wait: bool) -> Result<Value> {
     if !status.is_success() {
         return Err(api_error(status, &job));
     }
-    let id = job["id"].as_str().ok_or_else(|| anyhow!("no job id in {job}"))?.to_string();
+    let job = job_view(job)?;
+    let id = job.id.clone();
     line.say(&format!("submitted job {id}"));
     if !wait {
         return Ok(job);
@@ -370,7 +373,7 @@ async fn submit_http(args: &SubmitArgs, wait: bool) -> Result<Value> {
         let (s, v) = read_json(resp).await?;
         return Err(api_error(s, &v));
     }
-    let mut last = job;
+    let mut last_event = None;
     read_sse(resp, |ev| {
         match ev.event.as_str() {
             "queued" => line.say(&format!("queued at position {}", ev.data["queue_position"])),
@@ -380,7 +383,7 @@ async fn submit_http(args: &SubmitArgs, wait: bool) -> Result<Value> {
             }
             "succeeded" | "failed" | "cancelled" => {
                 line.say(&ev.event);
-                last = ev.data;
+                last_event = Some(ev.data);
                 return false;
             }
             _ => {}
@@ -388,15 +391,18 @@ async fn submit_http(args: &SubmitArgs, wait: bool) -> Result<Value> {
         true
     })
     .await?;
-    if !matches!(last["state"].as_str(), Some("succeeded" | "failed" | "cancelled")) {
-        // The stream ended early (daemon shutting down): report the latest state.
-        let (s, v) = client.json(Method::GET, &format!("/v1/jobs/{id}"), &[], body_bytes(Bytes::new())).await?;
-        if !s.is_success() {
-            return Err(api_error(s, &v));
+    let last = match last_event {
+        Some(data) => job_view(data)?,
+        None => {
+            // The stream ended early (daemon shutting down): report the latest state.
+            let (s, v) = client.json(Method::GET, &format!("/v1/jobs/{id}"), &[], body_bytes(Bytes::new())).await?;
+            if !s.is_success() {
+                return Err(api_error(s, &v));
+            }
+            job_view(v)?
         }
-        last = v;
-    }
-    if let (Some(out), Some("succeeded")) = (&args.output, last["state"].as_str()) {
+    };
+    if let (Some(out), JobState::Succeeded) = (&args.output, last.state) {
         let resp = client.get(&format!("/v1/jobs/{id}/result")).await?;
         if !resp.status().is_success() {
             let (s, v) = read_json(resp).await?;
@@ -482,70 +488,23 @@ pub async fn upload_stream(
     Ok(stream::once(async move { header }).chain(chunks(frame_file, pb::Part::Frame)).chain(reference_chunks))
 }
 
-fn options_pb(args: &SubmitArgs) -> Result<pb::JobOptions> {
-    let priority = match args.priority.as_str() {
-        "high" => pb::Priority::High,
-        "normal" => pb::Priority::Normal,
-        "low" => pb::Priority::Low,
-        other => bail!("unknown priority `{other}` (expected high, normal or low)"),
-    };
-    let (variant, variant_name) = match args.variant.as_str() {
-        "auto" => (pb::Variant::Unspecified, ""),
-        "full" => (pb::Variant::Full, ""),
-        "nocov" => (pb::Variant::Nocov, ""),
-        other => (pb::Variant::Unspecified, other),
-    };
-    Ok(pb::JobOptions {
-        priority: priority as i32,
-        layers: args.layers.clone(),
-        idempotency_key: args.idempotency_key.clone().unwrap_or_default(),
-        label: args.label.clone().unwrap_or_default(),
-        variant: variant as i32,
-        deadline_seconds: args.deadline_seconds.unwrap_or(0),
-        variant_name: variant_name.to_string(),
-        ..Default::default()
-    })
-}
-
 fn grpc_error(s: tonic::Status) -> anyhow::Error {
     anyhow!("{:?}: {}", s.code(), s.message())
 }
 
-/// A JSON form of a protobuf job, close to the HTTP API's.
-pub fn job_pb_json(j: &pb::Job) -> Value {
-    let state = pb::JobState::try_from(j.state).map(|s| s.as_str_name()).unwrap_or("JOB_STATE_UNSPECIFIED");
-    let state = state.trim_start_matches("JOB_STATE_").to_ascii_lowercase();
-    let q = |q: &Option<pb::QualityMetrics>| {
-        q.as_ref().map(|q| json!({ "relmse": q.relmse, "dssim": q.dssim, "psnr": q.psnr, "smape": q.smape }))
-    };
-    json!({
-        "id": j.id,
-        "state": state,
-        "queue_position": (j.queue_position > 0).then_some(j.queue_position),
-        "progress": j.progress.as_ref().map(|p| json!({ "tiles_done": p.tiles_done, "tiles_total": p.tiles_total })),
-        "width": j.width,
-        "height": j.height,
-        "variant": j.variant,
-        "attempts": j.attempts,
-        "timings_ms": j.timings.as_ref().map(|t| json!({
-            "queue": t.queue, "decode": t.decode, "preprocess": t.preprocess, "inference": t.inference,
-            "reconstruction": t.reconstruction, "encode": t.encode, "total": t.total,
-        })),
-        "metrics": j.metrics.as_ref().map(|m| json!({ "input": q(&m.input), "output": q(&m.output) })),
-        "sanitized": j.sanitized.as_ref().map(|s| json!({ "total": s.total, "by_buffer": s.by_buffer })),
-        "error": j.error.as_ref().map(|e| json!({ "code": e.code, "message": e.message })),
-        "result_bytes": j.result_bytes,
-    })
+/// A gRPC job in the HTTP API's form.
+fn job_from_pb(job: pb::Job) -> Result<JobView> {
+    JobView::try_from(job).map_err(|e| anyhow!("the daemon's job is not valid: {e}"))
 }
 
-async fn submit_grpc(args: &SubmitArgs, host_port: &str, wait: bool) -> Result<Value> {
+async fn submit_grpc(args: &SubmitArgs, options: &JobOptions, host_port: &str, wait: bool) -> Result<JobView> {
     let mut client = grpc_connect(host_port, args.token.as_ref().map(|t| t.0.as_str())).await?;
     let mut line = ProgressLine::new(args.quiet);
-    let upload = upload_stream(options_pb(args)?, &args.frame, args.reference.as_deref(), 1 << 20).await?;
+    let upload = upload_stream(options.into(), &args.frame, args.reference.as_deref(), 1 << 20).await?;
     let job = client.submit_job(upload).await.map_err(grpc_error)?.into_inner();
     line.say(&format!("submitted job {}", job.id));
     if !wait {
-        return Ok(job_pb_json(&job));
+        return job_from_pb(job);
     }
     let mut events =
         client.watch_job(pb::WatchJobRequest { id: job.id.clone() }).await.map_err(grpc_error)?.into_inner();
@@ -579,16 +538,14 @@ async fn submit_grpc(args: &SubmitArgs, host_port: &str, wait: bool) -> Result<V
         let n = fetch_grpc(&mut client, &job.id, out).await?;
         line.say(&format!("wrote {} ({n} bytes)", out.display()));
     }
-    Ok(job_pb_json(&last))
+    job_from_pb(last)
 }
 
 /// Downloads a result over gRPC into `path` atomically.
 pub async fn fetch_grpc(client: &mut GrpcClient, id: &str, path: &Path) -> Result<u64> {
-    use tokio::io::AsyncWriteExt;
     let mut chunks =
         client.fetch_result(pb::FetchResultRequest { id: id.to_string() }).await.map_err(grpc_error)?.into_inner();
-    let tmp = crate::jobs::store::part_path(path);
-    let mut file = tokio::fs::File::create(&tmp).await.with_context(|| format!("cannot create {}", tmp.display()))?;
+    let mut file = AsyncFile::create(path).await.with_context(|| format!("cannot create {}", path.display()))?;
     let mut n = 0u64;
     let mut total = None;
     while let Some(c) = chunks.message().await.map_err(grpc_error)? {
@@ -601,8 +558,6 @@ pub async fn fetch_grpc(client: &mut GrpcClient, id: &str, path: &Path) -> Resul
     if total.is_some_and(|t| t != n) {
         bail!("the result stream ended after {n} of {} bytes", total.unwrap_or(0));
     }
-    file.sync_all().await?;
-    drop(file);
-    tokio::fs::rename(&tmp, path).await?;
+    file.commit().await.with_context(|| format!("cannot write {}", path.display()))?;
     Ok(n)
 }

@@ -22,7 +22,7 @@ fn parse_duration(s: &str) -> Result<Duration, String> {
 }
 
 fn parse_firefly_mode(s: &str) -> Result<FireflyMode, String> {
-    FireflyMode::parse(s).ok_or_else(|| format!("unknown firefly mode `{s}` (expected auto or off)"))
+    s.parse()
 }
 
 fn parse_firefly_strength(s: &str) -> Result<f32, String> {

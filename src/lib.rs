@@ -16,11 +16,15 @@
 //!   workers that own engines, progress events), [`http`] and [`grpc`] (the two
 //!   transports over one core), [`server`] (startup and graceful shutdown), [`telemetry`]
 //!   (logs and Prometheus metrics), [`error`] (one error type, two mappings), [`client`]
-//!   (`mcdenoise submit`), [`auth`] (bearer tokens, client identity), [`tls`] (rustls
+//!   (`mcdenoise submit`), [`wire`] (the job's typed wire forms and their
+//!   protobuf conversions), [`auth`] (bearer tokens, client identity), [`tls`] (rustls
 //!   for both listeners).
+//!
+//! [`atomic`] writes every file the crate writes (temporary name, fsync, rename).
 //!
 //! `docs/frame-layout.md` and `docs/model-contract.md` describe the formats.
 
+pub mod atomic;
 pub mod auth;
 pub mod cli;
 pub mod client;
@@ -36,3 +40,4 @@ pub mod quality;
 pub mod server;
 pub mod telemetry;
 pub mod tls;
+pub mod wire;

@@ -912,8 +912,7 @@ fn expect_contains(what: &str, text: &str, part: &str) -> Result<(), String> {
 
 /// Waits until the job has finished (30 s at most).
 async fn finished(d: &Daemon, id: &str) -> Result<Value, String> {
-    let done = |j: &Value| matches!(j["state"].as_str(), Some("succeeded" | "failed" | "cancelled"));
-    tokio::time::timeout(Duration::from_secs(30), d.wait_job(id, "finished", done))
+    tokio::time::timeout(Duration::from_secs(30), d.wait_finished(id))
         .await
         .map_err(|_| format!("job {id} did not finish in 30 s"))
 }

@@ -6,7 +6,7 @@ mod common;
 mod daemon_common;
 
 use std::process::Command;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use hyper::StatusCode;
 use serde_json::Value;
@@ -42,16 +42,14 @@ async fn readiness_is_false_until_models_load_and_while_draining() {
     d.wait_running(&running).await;
     let queued = d.submit_ok(&frame(32, 32), "").await;
     d.server.shutdown();
-    let t = Instant::now();
-    loop {
-        let (status, body) = d.get_json("/readyz").await;
-        if status == StatusCode::SERVICE_UNAVAILABLE {
-            assert_eq!(body["phase"], "draining");
-            break;
+    let body = poll("readiness turning false", Duration::from_secs(5), || async {
+        match d.get_json("/readyz").await {
+            (StatusCode::SERVICE_UNAVAILABLE, body) => Ok(body),
+            other => Err(other),
         }
-        assert!(t.elapsed() < Duration::from_secs(5));
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    })
+    .await;
+    assert_eq!(body["phase"], "draining");
     assert_eq!(health.check(check()).await.unwrap().into_inner().status, not_serving);
     let (status, err) = d.submit(&frame(32, 32), "", &[]).await;
     assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{err}");
@@ -106,50 +104,34 @@ async fn a_killed_daemon_loses_nothing_and_completes_nothing_twice() {
     let dir = tempfile::tempdir().unwrap();
     let mut p = spawn_daemon(dir.path(), &["--tile", "16", "--debug-tile-delay", "80ms"]);
     let http = HttpClient::new(&p.http, None);
-    let get = |http: HttpClient, path: String| async move {
-        http.json(Method::GET, &path, &[], body_bytes(vec![])).await.unwrap()
-    };
     let submit = |http: HttpClient, exr: Vec<u8>| async move {
         let (s, j) =
             http.json(Method::POST, "/v1/jobs", &[("content-type", "image/x-exr")], body_bytes(exr)).await.unwrap();
         assert_eq!(s, StatusCode::ACCEPTED, "{j}");
         j["id"].as_str().unwrap().to_string()
     };
-    let wait = |http: HttpClient, id: String, pred: fn(&Value) -> bool| async move {
-        let t = Instant::now();
-        loop {
-            let (s, j) = http.json(Method::GET, &format!("/v1/jobs/{id}"), &[], body_bytes(vec![])).await.unwrap();
-            if s == StatusCode::OK && pred(&j) {
-                return j;
-            }
-            assert!(t.elapsed() < Duration::from_secs(60), "{j}");
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-    };
-    let t = Instant::now();
-    while get(http.clone(), "/readyz".into()).await.0 != StatusCode::OK {
-        assert!(t.elapsed() < Duration::from_secs(30));
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    wait_ready(&http).await;
     let done = submit(http.clone(), frame(32, 16)).await;
-    wait(http.clone(), done.clone(), |j| j["state"] == "succeeded").await;
-    let (_, before) = get(http.clone(), format!("/v1/jobs/{done}")).await;
+    wait_job(&http, &done, "succeeded", |j| j["state"] == "succeeded").await;
+    let (_, before) = get_json(&http, &format!("/v1/jobs/{done}")).await.unwrap();
     let running = submit(http.clone(), frame(64, 64)).await;
-    wait(http.clone(), running.clone(), |j| j["state"] == "running" && j["progress"]["tiles_done"].as_u64() >= Some(2))
-        .await;
+    wait_job(&http, &running, "in the expected state", |j| {
+        j["state"] == "running" && j["progress"]["tiles_done"].as_u64() >= Some(2)
+    })
+    .await;
     let queued = submit(http.clone(), frame(32, 32)).await;
 
     p.kill();
 
     let mut p = spawn_daemon(dir.path(), &[]);
     let http = HttpClient::new(&p.http, None);
-    let (_, after) = get(http.clone(), format!("/v1/jobs/{done}")).await;
+    let (_, after) = get_json(&http, &format!("/v1/jobs/{done}")).await.unwrap();
     assert_eq!(after["state"], "succeeded");
     assert_eq!(after["attempts"], 1, "not run again");
     assert_eq!(after["result_bytes"], before["result_bytes"]);
-    let j = wait(http.clone(), running.clone(), |j| j["state"] == "succeeded").await;
+    let j = wait_job(&http, &running, "in the expected state", |j| j["state"] == "succeeded").await;
     assert_eq!(j["attempts"], 2, "the interrupted run started again: {j}");
-    let j = wait(http.clone(), queued.clone(), |j| j["state"] == "succeeded").await;
+    let j = wait_job(&http, &queued, "in the expected state", |j| j["state"] == "succeeded").await;
     assert_eq!(j["attempts"], 1);
     let resp = http.get(&format!("/v1/jobs/{done}/result")).await.unwrap();
     assert_eq!(resp.status(), StatusCode::OK);
@@ -183,15 +165,13 @@ async fn deadlines_fail_slow_jobs_and_expired_jobs_are_removed() {
     d.wait_state(&quick, "succeeded").await;
     assert!(dir.path().join("jobs").join(&quick).join("result.exr").is_file());
     // Removed after the retention time.
-    let t = Instant::now();
-    loop {
-        let (status, _) = d.get_json(&format!("/v1/jobs/{quick}")).await;
-        if status == StatusCode::NOT_FOUND {
-            break;
+    poll("the job's removal", Duration::from_secs(10), || async {
+        match d.get_json(&format!("/v1/jobs/{quick}")).await {
+            (StatusCode::NOT_FOUND, _) => Ok(()),
+            other => Err(other),
         }
-        assert!(t.elapsed() < Duration::from_secs(10), "the job was never removed");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    })
+    .await;
     assert!(!dir.path().join("jobs").join(&quick).exists());
     d.stop().await;
 }

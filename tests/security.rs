@@ -126,11 +126,7 @@ async fn tokens_never_reach_the_logs_or_the_job_store() {
     let mut p = spawn_daemon(dir.path(), &["--auth-token", GOOD, "--log", "trace"]);
     let authed = HttpClient::new(&p.http, Some(GOOD));
     let wrong = HttpClient::new(&p.http, Some(BAD));
-    let t = std::time::Instant::now();
-    while authed.get("/readyz").await.unwrap().status() != StatusCode::OK {
-        assert!(t.elapsed() < Duration::from_secs(30));
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    wait_ready(&authed).await;
     let (status, job) = authed
         .json(Method::POST, "/v1/jobs", &[("content-type", "image/x-exr")], body_bytes(frame(32, 16)))
         .await
@@ -143,14 +139,7 @@ async fn tokens_never_reach_the_logs_or_the_job_store() {
         let _ = client.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await;
     }
     let id = job["id"].as_str().unwrap();
-    loop {
-        let (_, j) = authed.json(Method::GET, &format!("/v1/jobs/{id}"), &[], body_bytes(Bytes::new())).await.unwrap();
-        if j["state"] == "succeeded" {
-            break;
-        }
-        assert!(t.elapsed() < Duration::from_secs(60), "{j}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    wait_succeeded(&authed, id, Duration::from_secs(60)).await;
     assert!(p.terminate().success());
     let logs = p.logs.lock().unwrap().join("\n");
     assert!(logs.lines().count() > 20, "trace logging was on: {logs}");
@@ -333,15 +322,19 @@ async fn both_listeners_speak_tls_when_given_a_certificate() {
     let path = write(dir.path(), "f.exr", &frame(32, 16));
     let upload = mcdenoise::client::upload_stream(Default::default(), &path, None, 4096).await.unwrap();
     let job = api.submit_job(upload).await.unwrap().into_inner();
-    let t = std::time::Instant::now();
-    loop {
-        let j = api.get_job(mcdenoise::grpc::pb::GetJobRequest { id: job.id.clone() }).await.unwrap().into_inner();
-        if j.state == mcdenoise::grpc::pb::JobState::Succeeded as i32 {
-            break;
+    poll("the gRPC job succeeding", Duration::from_secs(60), || {
+        let mut api = api.clone();
+        let id = job.id.clone();
+        async move {
+            let j = api.get_job(mcdenoise::grpc::pb::GetJobRequest { id }).await.unwrap().into_inner();
+            if j.state == mcdenoise::grpc::pb::JobState::Succeeded as i32 {
+                Ok(())
+            } else {
+                Err(j)
+            }
         }
-        assert!(t.elapsed() < Duration::from_secs(60), "{j:?}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    })
+    .await;
     let plain = tonic::transport::Endpoint::from_shared(format!("http://{}", d.grpc)).unwrap().connect().await;
     if let Ok(channel) = plain {
         let mut health = tonic_health::pb::health_client::HealthClient::new(channel);

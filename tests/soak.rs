@@ -48,18 +48,6 @@ impl Rng {
     }
 }
 
-async fn get(http: &HttpClient, path: &str) -> Option<(StatusCode, Value)> {
-    http.json(Method::GET, path, &[], body_bytes(Bytes::new())).await.ok()
-}
-
-async fn wait_ready(http: &HttpClient) {
-    let t = Instant::now();
-    while get(http, "/readyz").await.map(|r| r.0) != Some(StatusCode::OK) {
-        assert!(t.elapsed() < Duration::from_secs(60), "the daemon did not become ready");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-}
-
 /// Submits `exr` in `pieces` parts `gap` apart (so a kill can land mid-upload). `Some(id)`
 /// when the daemon answered 202.
 async fn slow_submit(http: HttpClient, exr: Vec<u8>, label: String, pieces: usize, gap: Duration) -> Option<String> {
@@ -146,19 +134,9 @@ async fn sigkill_at_random_points_loses_no_accepted_job_and_serves_no_partial_re
             let t = Instant::now();
             for (label, (_, id)) in &submitted {
                 let Some(id) = id else { continue };
-                loop {
-                    let (status, job) = get(&http, &format!("/v1/jobs/{id}")).await.unwrap();
-                    assert_eq!(status, StatusCode::OK, "{label}: accepted job {id} was lost: {job}");
-                    if job["state"] == "succeeded" {
-                        break;
-                    }
-                    assert!(
-                        ["queued", "running"].contains(&job["state"].as_str().unwrap()),
-                        "{label}: accepted job ended {job}"
-                    );
-                    assert!(t.elapsed() < Duration::from_secs(120), "{label}: never finished: {job}");
-                    tokio::time::sleep(Duration::from_millis(20)).await;
-                }
+                let limit = Duration::from_secs(120).saturating_sub(t.elapsed());
+                eprintln!("{label}: waiting for {id}");
+                wait_succeeded(&http, id, limit).await;
             }
             assert!(p.terminate().success());
             break;
@@ -179,7 +157,7 @@ async fn sigkill_at_random_points_loses_no_accepted_job_and_serves_no_partial_re
         }
         tokio::time::sleep(Duration::from_millis(rng.below(700))).await;
         // What is in flight as the kill lands (read just before it).
-        if let Some((_, list)) = get(&http, "/v1/jobs?limit=1000").await {
+        if let Some((_, list)) = get_json(&http, "/v1/jobs?limit=1000").await {
             for job in list["jobs"].as_array().unwrap() {
                 match job["state"].as_str() {
                     Some("running") => *in_flight_at_kill.entry("running").or_default() += 1,
@@ -318,7 +296,7 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
             let mut ms = Vec::new();
             while !stop.is_cancelled() {
                 let t = Instant::now();
-                let (status, _) = get(&http, &path).await.unwrap();
+                let (status, _) = get_json(&http, &path).await.unwrap();
                 assert_eq!(status, StatusCode::OK);
                 ms.push(t.elapsed().as_secs_f64() * 1e3);
                 tokio::time::sleep(Duration::from_millis(5)).await;
@@ -364,15 +342,7 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
     // Everything accepted completes.
     let t = Instant::now();
     for id in accepted.iter().chain([&probe]) {
-        loop {
-            let (_, job) = get(&clients[2], &format!("/v1/jobs/{id}")).await.unwrap();
-            if job["state"] == "succeeded" {
-                break;
-            }
-            assert!(["queued", "running"].contains(&job["state"].as_str().unwrap()), "{job}");
-            assert!(t.elapsed() < Duration::from_secs(120), "{job}");
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
+        wait_succeeded(&clients[2], id, Duration::from_secs(120).saturating_sub(t.elapsed())).await;
     }
     let drained_s = t.elapsed().as_secs_f64();
     stop.cancel();
@@ -388,7 +358,7 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
     assert_eq!(status, StatusCode::ACCEPTED, "{job}");
     let id = job["id"].as_str().unwrap();
     loop {
-        let (_, job) = get(&clients[3], &format!("/v1/jobs/{id}")).await.unwrap();
+        let (_, job) = get_json(&clients[3], &format!("/v1/jobs/{id}")).await.unwrap();
         if job["state"] == "succeeded" {
             break;
         }
@@ -435,7 +405,7 @@ async fn sigterm_while_busy_flips_readiness_first_drains_and_loses_nothing() {
     }
     let t = Instant::now();
     loop {
-        let (_, job) = get(&http, &format!("/v1/jobs/{}", ids[0])).await.unwrap();
+        let (_, job) = get_json(&http, &format!("/v1/jobs/{}", ids[0])).await.unwrap();
         if job["state"] == "running" {
             break;
         }
@@ -485,13 +455,13 @@ async fn sigterm_while_busy_flips_readiness_first_drains_and_loses_nothing() {
     let p = spawn_daemon(dir.path(), &[]);
     let http = HttpClient::new(&p.http, None);
     wait_ready(&http).await;
-    let (_, first) = get(&http, &format!("/v1/jobs/{}", ids[0])).await.unwrap();
+    let (_, first) = get_json(&http, &format!("/v1/jobs/{}", ids[0])).await.unwrap();
     assert_eq!(first["state"], "succeeded", "the running job completed in the drain: {first}");
     assert_eq!(first["attempts"], 1, "{first}");
     let t = Instant::now();
     for id in &ids[1..] {
         loop {
-            let (status, job) = get(&http, &format!("/v1/jobs/{id}")).await.unwrap();
+            let (status, job) = get_json(&http, &format!("/v1/jobs/{id}")).await.unwrap();
             assert_eq!(status, StatusCode::OK, "{job}");
             if job["state"] == "succeeded" {
                 break;

@@ -76,6 +76,14 @@ impl FireflyMode {
     }
 }
 
+impl std::str::FromStr for FireflyMode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<FireflyMode, String> {
+        FireflyMode::parse(s).ok_or_else(|| format!("unknown fireflies mode `{s}` (expected auto or off)"))
+    }
+}
+
 /// Default strength: the thresholds of the module documentation as written.
 pub const DEFAULT_STRENGTH: f32 = 1.0;
 /// Accepted strengths. Below 0.1 the bound is 10× further than at 1 (nothing is

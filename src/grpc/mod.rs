@@ -11,11 +11,9 @@ use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status, Streaming};
 
 use crate::auth::{ClientId, Tokens};
-use crate::engine::{FireflyMode, Variant};
 use crate::error::Error;
-use crate::jobs::{
-    Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, Layer, ListFilter, Phase, Priority, UploadPart,
-};
+use crate::jobs::{Admission, JobEvent, JobOptions, JobService, ListFilter, Phase, UploadPart};
+use crate::wire::{priority_from_pb, state_from_pb};
 
 /// Generated from `proto/mcdenoise/v1/denoise.proto` at build time.
 #[allow(clippy::all, missing_docs)]
@@ -60,45 +58,7 @@ fn invalid(message: impl Into<String>) -> Status {
     status(&Error::BadRequest(message.into()))
 }
 
-// --- Conversions -----------------------------------------------------------------------
-
-fn state_pb(s: JobState) -> pb::JobState {
-    match s {
-        JobState::Queued => pb::JobState::Queued,
-        JobState::Running => pb::JobState::Running,
-        JobState::Succeeded => pb::JobState::Succeeded,
-        JobState::Failed => pb::JobState::Failed,
-        JobState::Cancelled => pb::JobState::Cancelled,
-    }
-}
-
-fn state_from_pb(v: i32) -> Result<Option<JobState>, Status> {
-    Ok(match pb::JobState::try_from(v).map_err(|_| invalid(format!("unknown job state {v}")))? {
-        pb::JobState::Unspecified => None,
-        pb::JobState::Queued => Some(JobState::Queued),
-        pb::JobState::Running => Some(JobState::Running),
-        pb::JobState::Succeeded => Some(JobState::Succeeded),
-        pb::JobState::Failed => Some(JobState::Failed),
-        pb::JobState::Cancelled => Some(JobState::Cancelled),
-    })
-}
-
-fn priority_pb(p: Priority) -> pb::Priority {
-    match p {
-        Priority::Low => pb::Priority::Low,
-        Priority::Normal => pb::Priority::Normal,
-        Priority::High => pb::Priority::High,
-    }
-}
-
-fn priority_from_pb(v: i32) -> Result<Option<Priority>, Status> {
-    Ok(match pb::Priority::try_from(v).map_err(|_| invalid(format!("unknown priority {v}")))? {
-        pb::Priority::Unspecified => None,
-        pb::Priority::Low => Some(Priority::Low),
-        pb::Priority::Normal => Some(Priority::Normal),
-        pb::Priority::High => Some(Priority::High),
-    })
-}
+// --- Conversions (the job's and its options' live in `crate::wire`) ---------------------
 
 impl From<&crate::engine::ModelInfo> for pb::ModelInfo {
     fn from(m: &crate::engine::ModelInfo) -> pb::ModelInfo {
@@ -115,104 +75,13 @@ impl From<&crate::engine::ModelInfo> for pb::ModelInfo {
     }
 }
 
-/// Job options from their protobuf form.
-pub fn options_from_pb(o: Option<pb::JobOptions>) -> Result<JobOptions, Status> {
-    let o = o.unwrap_or_default();
-    let layers = o.layers.iter().map(|l| l.parse::<Layer>().map_err(invalid)).collect::<Result<Vec<_>, _>>()?;
-    let variant =
-        match pb::Variant::try_from(o.variant).map_err(|_| invalid(format!("unknown variant {}", o.variant)))? {
-            pb::Variant::Unspecified => None,
-            pb::Variant::Full => Some(Variant::Full),
-            pb::Variant::Nocov => Some(Variant::Nocov),
-        };
-    let variant = match o.variant_name.as_str() {
-        "" => variant,
-        name => Some(Variant::parse(name).ok_or_else(|| invalid(format!("`{name}` is not a variant name")))?),
-    };
-    Ok(JobOptions {
-        priority: priority_from_pb(o.priority)?.unwrap_or_default(),
-        layers,
-        idempotency_key: Some(o.idempotency_key).filter(|s| !s.is_empty()),
-        label: Some(o.label).filter(|s| !s.is_empty()),
-        variant,
-        deadline_seconds: Some(o.deadline_seconds).filter(|s| *s > 0),
-        fireflies: match pb::FireflyMode::try_from(o.fireflies)
-            .map_err(|_| invalid(format!("unknown fireflies mode {}", o.fireflies)))?
-        {
-            pb::FireflyMode::Unspecified => None,
-            pb::FireflyMode::Auto => Some(FireflyMode::Auto),
-            pb::FireflyMode::Off => Some(FireflyMode::Off),
-        },
-        firefly_strength: Some(o.firefly_strength).filter(|s| *s != 0.0),
-    })
-}
-
-/// The protobuf form of a job.
-pub fn job_pb(s: &JobStatus) -> pb::Job {
-    let r = &s.record;
-    pb::Job {
-        id: r.id.clone(),
-        state: state_pb(r.state) as i32,
-        priority: priority_pb(r.options.priority) as i32,
-        label: r.options.label.clone().unwrap_or_default(),
-        idempotency_key: r.options.idempotency_key.clone().unwrap_or_default(),
-        queue_position: s.queue_position,
-        progress: Some(pb::Progress { tiles_done: r.progress.tiles_done, tiles_total: r.progress.tiles_total }),
-        timings: r.timings.map(|t| pb::StageTimings {
-            queue: t.queue,
-            decode: t.decode,
-            preprocess: t.preprocess,
-            inference: t.inference,
-            reconstruction: t.reconstruction,
-            encode: t.encode,
-            total: t.total,
-        }),
-        error: r.error.as_ref().map(|e| pb::JobError { code: e.code.name().to_string(), message: e.message.clone() }),
-        missing_variances: r.missing_variances.clone(),
-        fireflies: r.fireflies.map(|f| pb::Fireflies {
-            mode: f.mode.name().to_string(),
-            strength: f.strength,
-            handled: f.handled,
-            diffuse: f.by_component.diffuse,
-            specular: f.by_component.specular,
-        }),
-        metrics: r.metrics.map(|m| {
-            let q = |q: crate::jobs::QualityMetrics| pb::QualityMetrics {
-                relmse: q.relmse,
-                dssim: q.dssim,
-                psnr: q.psnr,
-                smape: q.smape,
-            };
-            pb::JobMetrics { input: Some(q(m.input)), output: Some(q(m.output)) }
-        }),
-        sanitized: r
-            .sanitized
-            .as_ref()
-            .map(|c| pb::Sanitized { total: c.total, by_buffer: c.by_buffer.clone().into_iter().collect() }),
-        width: r.width,
-        height: r.height,
-        variant: r.variant.map(|v| v.name().to_string()).unwrap_or_default(),
-        layers: r.options.layers.iter().map(|l| l.name().to_string()).collect(),
-        attempts: r.attempts,
-        cancel_requested: r.cancel_requested,
-        has_reference: r.has_reference,
-        input_bytes: r.input_bytes,
-        result_bytes: r.result_bytes.unwrap_or(0),
-        created_at_ms: r.created_at_ms,
-        started_at_ms: r.started_at_ms.unwrap_or(0),
-        finished_at_ms: r.finished_at_ms.unwrap_or(0),
-        expires_at_ms: r.expires_at_ms.unwrap_or(0),
-        deadline_at_ms: r.deadline_at_ms.unwrap_or(0),
-    }
-}
-
 /// The protobuf form of an event.
 pub fn event_pb(job_id: &str, ev: &JobEvent) -> pb::JobEvent {
     let mut out = pb::JobEvent { job_id: job_id.to_string(), ..Default::default() };
     let kind = match ev {
         JobEvent::Queued { status } => {
             out.queue_position = status.queue_position;
-            out.job = Some(job_pb(status));
+            out.job = Some(pb::Job::from(&**status));
             pb::EventType::Queued
         }
         JobEvent::Started { attempt } => {
@@ -224,15 +93,15 @@ pub fn event_pb(job_id: &str, ev: &JobEvent) -> pb::JobEvent {
             pb::EventType::Progress
         }
         JobEvent::Succeeded(s) => {
-            out.job = Some(job_pb(s));
+            out.job = Some(pb::Job::from(&**s));
             pb::EventType::Succeeded
         }
         JobEvent::Failed(s) => {
-            out.job = Some(job_pb(s));
+            out.job = Some(pb::Job::from(&**s));
             pb::EventType::Failed
         }
         JobEvent::Cancelled(s) => {
-            out.job = Some(job_pb(s));
+            out.job = Some(pb::Job::from(&**s));
             pb::EventType::Cancelled
         }
     };
@@ -279,7 +148,7 @@ impl Denoiser for Api {
     }
 
     async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
-        let result = self.service.get(&request.into_inner().id).map(|s| Response::new(job_pb(&s)));
+        let result = self.service.get(&request.into_inner().id).map(|s| Response::new(pb::Job::from(&s)));
         self.observe("GetJob", result.map_err(|e| status(&e)))
     }
 
@@ -287,15 +156,15 @@ impl Denoiser for Api {
         let r = request.into_inner();
         let result = (|| {
             let filter = ListFilter {
-                state: state_from_pb(r.state)?,
-                priority: priority_from_pb(r.priority)?,
+                state: state_from_pb(r.state).map_err(invalid)?,
+                priority: priority_from_pb(r.priority).map_err(invalid)?,
                 label: Some(r.label).filter(|s| !s.is_empty()),
                 limit: (r.page_size > 0).then_some(r.page_size as usize),
                 after: Some(r.page_token).filter(|s| !s.is_empty()),
             };
             let (jobs, next) = self.service.list(&filter).map_err(|e| status(&e))?;
             Ok(Response::new(pb::ListJobsResponse {
-                jobs: jobs.iter().map(job_pb).collect(),
+                jobs: jobs.iter().map(pb::Job::from).collect(),
                 next_page_token: next.unwrap_or_default(),
             }))
         })();
@@ -304,7 +173,7 @@ impl Denoiser for Api {
 
     async fn cancel_job(&self, request: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
         let id = request.into_inner().id;
-        let result = self.service.cancel(&id).await.map(|s| Response::new(job_pb(&s))).map_err(|e| status(&e));
+        let result = self.service.cancel(&id).await.map(|s| Response::new(pb::Job::from(&s))).map_err(|e| status(&e));
         self.observe("CancelJob", result)
     }
 
@@ -388,7 +257,7 @@ where
         }
         None => return Err(Error::BadRequest("empty upload: the first message must be a `header`".into())),
     };
-    let options = options_from_pb(header.options).map_err(|s| Error::BadRequest(s.message().to_string()))?;
+    let options = JobOptions::try_from(header.options.unwrap_or_default()).map_err(Error::BadRequest)?;
     if header.frame_size == 0 {
         return Err(Error::BadRequest("header.frame_size must be the frame's size in bytes".into()));
     }
@@ -398,7 +267,7 @@ where
         return Err(Error::TooLarge(format!("the upload declares {declared} bytes, over the limit of {max}")));
     }
     let mut ticket = match service.admit(options, "grpc", client)? {
-        Admission::Existing(status) => return Ok(job_pb(&status)),
+        Admission::Existing(status) => return Ok(pb::Job::from(&status)),
         Admission::New(t) => t,
     };
     let sizes = [(UploadPart::Frame, header.frame_size), (UploadPart::Reference, header.reference_size)];
@@ -468,7 +337,7 @@ where
         }
     }
     let status = ticket.commit().await?;
-    Ok(job_pb(&status))
+    Ok(pb::Job::from(&status))
 }
 
 /// Who is calling: set by [`Auth`] on every API request.

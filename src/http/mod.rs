@@ -28,12 +28,9 @@ use tokio_util::sync::CancellationToken;
 pub use error::ApiError;
 
 use crate::auth::{ClientId, Tokens};
-use crate::engine::{FireflyMode, Variant};
 use crate::error::Error;
-use crate::jobs::{
-    rfc3339, Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, Layer, ListFilter, Phase, Priority,
-    UploadPart,
-};
+use crate::jobs::{Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, ListFilter, Phase, UploadPart};
+use crate::wire::{JobList, JobView, OptionsQuery};
 
 /// The OpenAPI 3.1 description of this API.
 pub const OPENAPI: &str = include_str!("openapi.json");
@@ -194,100 +191,14 @@ async fn openapi() -> Response {
 
 // --- Jobs ----------------------------------------------------------------------------------
 
-/// The JSON form of a job.
-pub fn job_json(s: &JobStatus) -> Value {
-    let r = &s.record;
-    let base = format!("/v1/jobs/{}", r.id);
-    json!({
-        "id": r.id,
-        "state": r.state,
-        "priority": r.options.priority,
-        "label": r.options.label,
-        "idempotency_key": r.options.idempotency_key,
-        "queue_position": (r.state == JobState::Queued).then_some(s.queue_position),
-        "progress": r.progress,
-        "width": r.width,
-        "height": r.height,
-        "input_bytes": r.input_bytes,
-        "has_reference": r.has_reference,
-        "layers": r.options.layers,
-        "requested_variant": r.options.variant,
-        "variant": r.variant,
-        "requested_fireflies": r.options.fireflies,
-        "requested_firefly_strength": r.options.firefly_strength,
-        "fireflies": r.fireflies,
-        "attempts": r.attempts,
-        "cancel_requested": r.cancel_requested,
-        "timings_ms": r.timings,
-        "metrics": r.metrics,
-        "sanitized": r.sanitized,
-        "missing_variances": r.missing_variances,
-        "error": r.error,
-        "result_bytes": r.result_bytes,
-        "created_at": rfc3339(r.created_at_ms),
-        "started_at": r.started_at_ms.map(rfc3339),
-        "finished_at": r.finished_at_ms.map(rfc3339),
-        "deadline_at": r.deadline_at_ms.map(rfc3339),
-        "expires_at": r.expires_at_ms.map(rfc3339),
-        "urls": {
-            "self": base,
-            "events": format!("{base}/events"),
-            "result": format!("{base}/result"),
-            "cancel": format!("{base}/cancel"),
-        },
-    })
-}
-
-/// Options of a raw-body submission, from the query string.
-#[derive(Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-struct SubmitQuery {
-    priority: Option<String>,
-    /// Comma-separated.
-    layers: Option<String>,
-    label: Option<String>,
-    variant: Option<String>,
-    deadline_seconds: Option<u64>,
-    idempotency_key: Option<String>,
-    fireflies: Option<String>,
-    firefly_strength: Option<f32>,
-}
-
-fn options_from_query(q: SubmitQuery, headers: &HeaderMap) -> Result<JobOptions, Error> {
-    let priority = match q.priority.as_deref() {
-        None | Some("") => Priority::default(),
-        Some(p) => p.parse().map_err(Error::BadRequest)?,
-    };
-    let layers = q
-        .layers
-        .as_deref()
-        .unwrap_or("")
-        .split(',')
-        .map(str::trim)
-        .filter(|l| !l.is_empty())
-        .map(|l| l.parse().map_err(Error::BadRequest))
-        .collect::<Result<Vec<Layer>, Error>>()?;
-    let variant = Variant::parse_choice(q.variant.as_deref().unwrap_or("")).map_err(Error::BadRequest)?;
-    let fireflies = match q.fireflies.as_deref() {
-        None | Some("") => None,
-        Some(f) => Some(
-            FireflyMode::parse(f)
-                .ok_or_else(|| Error::BadRequest(format!("unknown fireflies `{f}` (expected auto or off)")))?,
-        ),
-    };
-    Ok(JobOptions {
-        priority,
-        layers,
-        idempotency_key: match q.idempotency_key {
-            Some(key) => Some(key),
-            None => idempotency_header(headers)?,
-        },
-        label: q.label,
-        variant,
-        deadline_seconds: q.deadline_seconds,
-        fireflies,
-        firefly_strength: q.firefly_strength,
-    })
+/// The options of a raw-body submission: the query string, and the `Idempotency-Key`
+/// header unless the query names a key.
+fn options_from_query(q: OptionsQuery, headers: &HeaderMap) -> Result<JobOptions, Error> {
+    let mut options = q.parse().map_err(Error::BadRequest)?;
+    if options.idempotency_key.is_none() {
+        options.idempotency_key = idempotency_header(headers)?;
+    }
+    Ok(options)
 }
 
 /// The `Idempotency-Key` header; one that is not visible ASCII is refused rather than
@@ -302,7 +213,7 @@ fn idempotency_header(headers: &HeaderMap) -> Result<Option<String>, Error> {
 }
 
 fn accepted(status: &JobStatus, replayed: bool) -> Response {
-    let mut response = (StatusCode::ACCEPTED, Json(job_json(status))).into_response();
+    let mut response = (StatusCode::ACCEPTED, Json(JobView::from(status))).into_response();
     let h = response.headers_mut();
     if let Ok(v) = HeaderValue::from_str(&format!("/v1/jobs/{}", status.record.id)) {
         h.insert(header::LOCATION, v);
@@ -336,8 +247,8 @@ async fn submit_inner(app: AppState, client: ClientId, request: Request) -> Resu
     if declared.is_some_and(|n| n > max) {
         return Err(Error::TooLarge(format!("the upload is over the limit of {max} bytes")).into());
     }
-    let query: SubmitQuery = match request.uri().query() {
-        None => SubmitQuery::default(),
+    let query = match request.uri().query() {
+        None => OptionsQuery::default(),
         Some(q) => serde_urlencoded_query(q)?,
     };
     let options = options_from_query(query, request.headers())?;
@@ -431,8 +342,8 @@ impl Drop for DrainOnDrop {
     }
 }
 
-fn serde_urlencoded_query(q: &str) -> Result<SubmitQuery, Error> {
-    Query::<SubmitQuery>::try_from_uri(&format!("/?{q}").parse().map_err(|_| Error::BadRequest("bad query".into()))?)
+fn serde_urlencoded_query(q: &str) -> Result<OptionsQuery, Error> {
+    Query::<OptionsQuery>::try_from_uri(&format!("/?{q}").parse().map_err(|_| Error::BadRequest("bad query".into()))?)
         .map(|Query(q)| q)
         .map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))
 }
@@ -499,8 +410,8 @@ async fn submit_multipart(
     Ok(accepted(&status, false))
 }
 
-async fn get_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<Json<Value>, ApiError> {
-    Ok(Json(job_json(&app.service.get(&id)?)))
+async fn get_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<Json<JobView>, ApiError> {
+    Ok(Json(JobView::from(&app.service.get(&id)?)))
 }
 
 #[derive(Deserialize)]
@@ -516,20 +427,20 @@ struct ListQuery {
 async fn list(
     State(app): State<AppState>,
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
-) -> Result<Json<Value>, ApiError> {
+) -> Result<Json<JobList>, ApiError> {
     let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
     let state = q.state.as_deref().filter(|s| !s.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
     let priority =
         q.priority.as_deref().filter(|p| !p.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
     let filter = ListFilter { state, priority, label: q.label, limit: q.limit, after: q.page_token };
     let (jobs, next) = app.service.list(&filter)?;
-    Ok(Json(json!({ "jobs": jobs.iter().map(job_json).collect::<Vec<_>>(), "next_page_token": next })))
+    Ok(Json(JobList { jobs: jobs.iter().map(JobView::from).collect(), next_page_token: next }))
 }
 
 async fn cancel(State(app): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
     let status = app.service.cancel(&id).await?;
     let code = if status.record.state == JobState::Cancelled { StatusCode::OK } else { StatusCode::ACCEPTED };
-    Ok((code, Json(job_json(&status))).into_response())
+    Ok((code, Json(JobView::from(&status))).into_response())
 }
 
 async fn delete_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
@@ -559,12 +470,12 @@ async fn result(State(app): State<AppState>, Path(id): Path<String>) -> Result<R
 /// The JSON data of an SSE event.
 pub fn event_json(job_id: &str, ev: &JobEvent) -> Value {
     match ev {
-        JobEvent::Queued { status } => job_json(status),
+        JobEvent::Queued { status } => json!(JobView::from(&**status)),
         JobEvent::Started { attempt } => json!({ "id": job_id, "attempt": attempt }),
         JobEvent::Progress(p) => {
             json!({ "id": job_id, "tiles_done": p.tiles_done, "tiles_total": p.tiles_total })
         }
-        JobEvent::Succeeded(s) | JobEvent::Failed(s) | JobEvent::Cancelled(s) => job_json(s),
+        JobEvent::Succeeded(s) | JobEvent::Failed(s) | JobEvent::Cancelled(s) => json!(JobView::from(&**s)),
     }
 }
 

@@ -12,7 +12,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::lifecycle::{deadline_passed, Ending, Finished};
-use super::{lock_poisoned, store, JobService};
+use super::{lock_poisoned, JobService};
 use crate::engine::{ModelInfo, Variant};
 use crate::jobs::{FireflyCounts, JobError, JobErrorCode, JobEvent, JobRecord, JobState, Layer, Phase, Progress};
 use crate::pipeline;
@@ -236,8 +236,8 @@ impl WorkerLink {
         summary.expires_at_ms = Some(now + service.inner.settings.ttl_ms());
         let written = serde_json::to_vec(&summary)
             .map_err(std::io::Error::other)
-            .and_then(|json| store::write_durable(&service.inner.store.summary_path(id), &json))
-            .and_then(|()| store::write_durable(&service.inner.store.result_path(id), &out.encoded));
+            .and_then(|json| crate::atomic::write(&service.inner.store.summary_path(id), &json))
+            .and_then(|()| crate::atomic::write(&service.inner.store.result_path(id), &out.encoded));
         if let Err(e) = written {
             let message = format!("cannot write the result: {e}");
             return Some(Ending::Failed(JobError { code: JobErrorCode::Internal, message }, None));

@@ -240,7 +240,23 @@ pub enum JobErrorCode {
     Internal,
 }
 
+impl std::str::FromStr for JobErrorCode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<JobErrorCode, String> {
+        JobErrorCode::ALL.into_iter().find(|c| c.name() == s).ok_or_else(|| format!("unknown job error code `{s}`"))
+    }
+}
+
 impl JobErrorCode {
+    pub const ALL: [JobErrorCode; 5] = [
+        JobErrorCode::InvalidFrame,
+        JobErrorCode::NoModel,
+        JobErrorCode::DeadlineExceeded,
+        JobErrorCode::Inference,
+        JobErrorCode::Internal,
+    ];
+
     pub fn name(self) -> &'static str {
         match self {
             JobErrorCode::InvalidFrame => "invalid_frame",

@@ -92,8 +92,10 @@ pub(super) fn recover(store: &Store, settings: &Settings, telemetry: &Telemetry,
             if !st.jobs.contains_key(&name) {
                 store.remove_files(&name);
             } else {
-                for leftover in ["input.exr.part", "reference.exr.part", "result.exr.part", "result.json.part"] {
-                    let _ = std::fs::remove_file(entry.path().join(leftover));
+                for leftover in std::fs::read_dir(entry.path()).into_iter().flatten().flatten() {
+                    if crate::atomic::is_part(&leftover.path()) {
+                        let _ = std::fs::remove_file(leftover.path());
+                    }
                 }
             }
         }

@@ -10,14 +10,13 @@
 //!   jobs/<id>/result.exr   the denoised frame
 //! ```
 //!
-//! Every file is written under a temporary name, flushed to disk and renamed, so a reader
-//! never sees half a file. A job's record is committed only after its input is on disk;
+//! Every file is written under a temporary name, flushed to disk and renamed
+//! ([`crate::atomic`]), so a reader never sees half a file. A job's record is committed only after its input is on disk;
 //! its result is served only after its record says `succeeded`. If the process dies
 //! between writing `result.exr` and committing the record, recovery finds `result.json`
 //! and `result.exr` and completes the record instead of running the job again.
 
 use std::fs;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
@@ -143,33 +142,5 @@ impl Store {
         for p in [self.input_path(id), self.reference_path(id)] {
             let _ = fs::remove_file(p);
         }
-    }
-}
-
-/// The name a file is written under before it is renamed into place.
-pub fn part_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().unwrap_or_default().to_os_string();
-    name.push(".part");
-    path.with_file_name(name)
-}
-
-/// Writes `bytes` to `path` atomically and durably: a `.part` file, fsync, rename, fsync
-/// of the directory.
-pub fn write_durable(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let tmp = part_path(path);
-    {
-        let mut f = fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-    }
-    fs::rename(&tmp, path)?;
-    sync_dir(path)
-}
-
-/// Flushes the directory entry of `path` (after a rename).
-pub fn sync_dir(path: &Path) -> std::io::Result<()> {
-    match path.parent() {
-        Some(dir) => fs::File::open(dir)?.sync_all(),
-        None => Ok(()),
     }
 }

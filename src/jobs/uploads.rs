@@ -5,12 +5,10 @@
 //! Locking: a ticket holds no lock while bytes arrive; files are written with async I/O.
 //! Only the commit (through `admission`) and the release on drop take the state lock.
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
-use tokio::io::AsyncWriteExt;
-
-use super::{store, validate, JobService};
+use super::{validate, JobService};
+use crate::atomic::AsyncFile;
 use crate::auth::ClientId;
 use crate::error::{Error, Result};
 use crate::jobs::{JobOptions, JobStatus};
@@ -107,13 +105,9 @@ impl Ticket {
         };
         let dir = store.job_dir(&self.id);
         tokio::fs::create_dir_all(&dir).await.map_err(|e| Error::internal("cannot create the job directory", e))?;
-        let tmp = store::part_path(&path);
-        let file =
-            tokio::fs::File::create(&tmp).await.map_err(|e| Error::internal("cannot create the upload file", e))?;
+        let file = AsyncFile::create(&path).await.map_err(|e| Error::internal("cannot create the upload file", e))?;
         Ok(Sink {
-            file: tokio::io::BufWriter::with_capacity(1 << 20, file),
-            tmp,
-            path,
+            file,
             part,
             written: 0,
             limit: self.remaining(),
@@ -186,9 +180,7 @@ impl Drop for Ticket {
 
 /// Receives one uploaded file, enforcing the body limit as bytes arrive.
 pub struct Sink {
-    file: tokio::io::BufWriter<tokio::fs::File>,
-    tmp: PathBuf,
-    path: PathBuf,
+    file: AsyncFile,
     part: UploadPart,
     written: u64,
     limit: u64,
@@ -211,12 +203,8 @@ impl Sink {
         self.file.write_all(data).await.map_err(|e| Error::internal("cannot write the upload", e))
     }
 
-    async fn finish(mut self) -> Result<u64> {
-        self.file.flush().await.map_err(|e| Error::internal("cannot write the upload", e))?;
-        let file = self.file.into_inner();
-        file.sync_all().await.map_err(|e| Error::internal("cannot sync the upload", e))?;
-        drop(file);
-        tokio::fs::rename(&self.tmp, &self.path).await.map_err(|e| Error::internal("cannot move the upload", e))?;
+    async fn finish(self) -> Result<u64> {
+        self.file.commit().await.map_err(|e| Error::internal("cannot store the upload", e))?;
         Ok(self.written)
     }
 }

@@ -1,5 +1,6 @@
-//! Shared by the daemon tests: a daemon on ephemeral ports with the tiny test models, an
-//! HTTP client, synthetic frames.
+//! Shared by the daemon tests: a daemon on ephemeral ports with the tiny test models (in
+//! process, or the binary), waiting for readiness and for job states over HTTP, synthetic
+//! frames. Every daemon test file uses these instead of its own polling loops.
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
@@ -14,6 +15,73 @@ use mcdenoise::config::parse_serve_args;
 use mcdenoise::server::Server;
 
 use crate::common::{exr_single, named_planes, tiny_models, Sample};
+
+/// Polls `probe` every 20 ms until it gives `Some`, for at most `limit`; then fails,
+/// naming `what` and the last value seen.
+pub async fn poll<T, V: std::fmt::Debug, F, Fut>(what: &str, limit: Duration, mut probe: F) -> T
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Result<T, V>>,
+{
+    let t = Instant::now();
+    loop {
+        match probe().await {
+            Ok(v) => return v,
+            Err(last) => assert!(t.elapsed() < limit, "{what}: not after {limit:?} (last: {last:?})"),
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// A GET with a JSON answer; `None` if the daemon cannot be reached.
+pub async fn get_json(http: &HttpClient, path: &str) -> Option<(StatusCode, Value)> {
+    http.json(Method::GET, path, &[], body_bytes(Bytes::new())).await.ok()
+}
+
+/// Waits until `/readyz` answers 200 (60 s at most).
+pub async fn wait_ready(http: &HttpClient) {
+    poll("the daemon becoming ready", Duration::from_secs(60), || async {
+        match get_json(http, "/readyz").await {
+            Some((StatusCode::OK, _)) => Ok(()),
+            other => Err(other),
+        }
+    })
+    .await
+}
+
+/// Polls the job until `pred` holds (60 s at most); its JSON.
+pub async fn wait_job(http: &HttpClient, id: &str, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
+    poll(&format!("job {id} becoming {what}"), Duration::from_secs(60), || async {
+        match get_json(http, &format!("/v1/jobs/{id}")).await {
+            Some((StatusCode::OK, job)) if pred(&job) => Ok(job),
+            other => Err(other),
+        }
+    })
+    .await
+}
+
+pub fn is_finished(job: &Value) -> bool {
+    matches!(job["state"].as_str(), Some("succeeded" | "failed" | "cancelled"))
+}
+
+/// Waits until the job has finished, whichever way.
+pub async fn wait_finished(http: &HttpClient, id: &str) -> Value {
+    wait_job(http, id, "finished", is_finished).await
+}
+
+/// Waits until the job has succeeded; fails at once if it ends any other way or is lost.
+pub async fn wait_succeeded(http: &HttpClient, id: &str, limit: Duration) -> Value {
+    poll(&format!("job {id} succeeding"), limit, || async {
+        let (status, job) = get_json(http, &format!("/v1/jobs/{id}")).await.expect("the daemon answers");
+        assert_eq!(status, StatusCode::OK, "the accepted job {id} was lost: {job}");
+        match job["state"].as_str() {
+            Some("succeeded") => Ok(job),
+            Some("queued" | "running") => Err(job),
+            _ => panic!("the job {id} ended other than succeeded: {job}"),
+        }
+    })
+    .await
+}
 
 /// A daemon under test.
 pub struct Daemon {
@@ -65,17 +133,10 @@ pub async fn start_with_token(data_dir: &Path, extra: &[&str], token: Option<&st
 }
 
 impl Daemon {
-    /// Waits until /readyz says ready.
+    /// Waits until the core is ready, then until /readyz says so.
     pub async fn ready(&self) {
-        let t = Instant::now();
-        loop {
-            let resp = self.http.get("/readyz").await.expect("readyz");
-            if resp.status() == StatusCode::OK {
-                return;
-            }
-            assert!(t.elapsed() < Duration::from_secs(30), "the daemon did not become ready");
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
+        self.server.service.wait_ready(Duration::from_secs(30)).await.expect("the daemon becomes ready");
+        wait_ready(&self.http).await;
     }
 
     pub async fn stop(self) {
@@ -115,15 +176,11 @@ impl Daemon {
 
     /// Polls the job until `pred` holds.
     pub async fn wait_job(&self, id: &str, what: &str, pred: impl Fn(&Value) -> bool) -> Value {
-        let t = Instant::now();
-        loop {
-            let job = self.job(id).await;
-            if pred(&job) {
-                return job;
-            }
-            assert!(t.elapsed() < Duration::from_secs(60), "job {id} never became {what}: {job}");
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
+        wait_job(&self.http, id, what, pred).await
+    }
+
+    pub async fn wait_finished(&self, id: &str) -> Value {
+        wait_finished(&self.http, id).await
     }
 
     pub async fn wait_state(&self, id: &str, state: &str) -> Value {
