@@ -60,6 +60,8 @@ pub(super) struct Prepared {
     /// The state `prepare` saw; the commit happens only if the job is still in it.
     from: JobState,
     next: JobRecord,
+    /// The terminal event that announces it.
+    event: fn(Box<JobStatus>) -> JobEvent,
 }
 
 impl JobService {
@@ -75,24 +77,29 @@ impl JobService {
         if from == JobState::Queued && st.queue.remove(next.options.priority, next.seq) {
             self.update_depth(st);
         }
-        match ending {
-            Ending::Succeeded(finished) => finished.apply(&mut next),
+        let event: fn(Box<JobStatus>) -> JobEvent = match ending {
+            Ending::Succeeded(finished) => {
+                finished.apply(&mut next);
+                JobEvent::Succeeded
+            }
             Ending::Failed(error, timings) => {
                 next.state = JobState::Failed;
                 next.error = Some(error);
                 if timings.is_some() {
                     next.timings = timings;
                 }
+                JobEvent::Failed
             }
             Ending::Cancelled => {
                 next.state = JobState::Cancelled;
                 next.cancel_requested = true;
+                JobEvent::Cancelled
             }
-        }
+        };
         let now = self.now();
         next.finished_at_ms = Some(now);
         next.expires_at_ms = Some(now + self.inner.settings.ttl_ms());
-        Some(Prepared { id: id.to_string(), from, next })
+        Some(Prepared { id: id.to_string(), from, next, event })
     }
 
     /// Makes a prepared final state durable, then visible: the record is written, the
@@ -100,7 +107,7 @@ impl JobService {
     /// write is logged and returned, but the job ends in memory all the same (at the next
     /// start, recovery finds the older record and runs the job again or adopts its result).
     pub(super) fn commit(&self, _journal: &Journal<'_>, prepared: Prepared) -> Result<Option<JobStatus>> {
-        let Prepared { id, from, next } = prepared;
+        let Prepared { id, from, next, event } = prepared;
         let current = self.lock().jobs.get(&id).map(|e| e.record.state);
         if current != Some(from) {
             // Deleted or ended by someone else since `prepare`.
@@ -117,16 +124,10 @@ impl JobService {
         let entry = st.jobs.get_mut(&id).expect("present: deletes hold the journal");
         entry.record = next;
         let status = JobStatus { record: entry.record.clone(), queue_position: 0 };
-        let event = match state {
-            JobState::Succeeded => JobEvent::Succeeded(Box::new(status.clone())),
-            JobState::Failed => JobEvent::Failed(Box::new(status.clone())),
-            JobState::Cancelled => {
-                entry.cancel.store(true, Ordering::SeqCst);
-                JobEvent::Cancelled(Box::new(status.clone()))
-            }
-            JobState::Queued | JobState::Running => unreachable!("prepare only makes final states"),
-        };
-        let _ = entry.events.send(event);
+        if state == JobState::Cancelled {
+            entry.cancel.store(true, Ordering::SeqCst);
+        }
+        let _ = entry.events.send(event(Box::new(status.clone())));
         if state == JobState::Succeeded {
             st.avg_run_ms = if st.avg_run_ms == 0.0 { run_ms } else { 0.8 * st.avg_run_ms + 0.2 * run_ms };
         }

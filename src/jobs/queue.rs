@@ -1,6 +1,8 @@
 //! The in-memory order of queued jobs: priority classes, FIFO (by admission sequence)
 //! within a class. The persistent truth is the job records; this is rebuilt from them at
 //! startup.
+//!
+//! Locking: plain data inside the core's `State`, read and changed under its lock only.
 
 use std::collections::BTreeMap;
 

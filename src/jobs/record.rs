@@ -1,4 +1,6 @@
 //! What a job is: its options, its persisted record, and the events it emits.
+//!
+//! Locking: plain data; the core keeps the live copies inside its `State`.
 
 use serde::{Deserialize, Serialize};
 

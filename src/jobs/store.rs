@@ -15,6 +15,10 @@
 //! its result is served only after its record says `succeeded`. If the process dies
 //! between writing `result.exr` and committing the record, recovery finds `result.json`
 //! and `result.exr` and completes the record instead of running the job again.
+//!
+//! Locking: none of its own (redb serialises write transactions). The core calls it with
+//! no state lock held; its record writes are ordered by the core's journal (see
+//! [`crate::jobs`]).
 
 use std::fs;
 use std::path::{Path, PathBuf};

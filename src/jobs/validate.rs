@@ -1,6 +1,8 @@
 //! Cheap checks of an uploaded frame at submission time: only the EXR header is read (no
 //! pixel data), so a wrong file is refused at once with the channel or limit it breaks.
 //! The full decode happens in the worker; a defect found there fails the job.
+//!
+//! Locking: none; it runs on the blocking pool during a commit, before the job exists.
 
 use std::io::BufReader;
 use std::path::Path;
