@@ -18,9 +18,12 @@ use super::EngineError;
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelInfo {
     pub variant: Variant,
-    /// The component the graph predicts; `None` for a contract-v2 graph, which predicts both.
+    /// The component the graph predicts; `None` for a contract-v2 graph, which predicts both
+    /// (shown as `both`).
+    #[serde(serialize_with = "component_or_both")]
     pub component: Option<Component>,
-    /// Contract version (1 or 2).
+    /// Contract version (1 or 2; shown as a string, as the file's metadata has it).
+    #[serde(serialize_with = "as_string")]
     pub contract: u32,
     /// The feature inputs (`mcdenoise.features`).
     pub features: FeatureSet,
@@ -35,6 +38,14 @@ pub struct ModelInfo {
     pub kernel_size: usize,
     /// Pyramid levels (1 for contract v1).
     pub levels: usize,
+}
+
+fn component_or_both<S: serde::Serializer>(c: &Option<Component>, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_str(c.map_or("both", Component::name))
+}
+
+fn as_string<S: serde::Serializer>(v: &u32, s: S) -> Result<S::Ok, S::Error> {
+    s.collect_str(v)
 }
 
 impl ModelInfo {
