@@ -97,6 +97,14 @@ pub struct ServeArgs {
     /// How often expired jobs are looked for.
     #[arg(long, env = "MCDENOISE_JANITOR_INTERVAL", default_value = "60s", value_parser = parse_duration, help_heading = "Storage")]
     pub janitor_interval: Duration,
+    /// Free bytes the data directory's file system must keep: below it the daemon is not
+    /// ready and refuses submissions with 503 `storage_full` (docs/reliability.md).
+    #[arg(long, env = "MCDENOISE_MIN_FREE_BYTES", default_value_t = 256 << 20, help_heading = "Storage")]
+    pub min_free_bytes: u64,
+    /// How often the data directory is checked (still the one opened, writable, above
+    /// --min-free-bytes).
+    #[arg(long, env = "MCDENOISE_STORAGE_CHECK_INTERVAL", default_value = "2s", value_parser = parse_duration, help_heading = "Storage")]
+    pub storage_check_interval: Duration,
 
     // --- Models and workers ----------------------------------------------------------
     /// Directory with the model variants (`full/`, `nocov/`, ...; docs/model-contract.md).
@@ -225,6 +233,9 @@ impl ServeArgs {
         if self.janitor_interval.is_zero() {
             bail!("--janitor-interval must be positive");
         }
+        if self.storage_check_interval.is_zero() {
+            bail!("--storage-check-interval must be positive");
+        }
         Ok(())
     }
 
@@ -244,6 +255,8 @@ impl ServeArgs {
             "job_deadline": humantime::format_duration(self.job_deadline).to_string(),
             "result_ttl": humantime::format_duration(self.result_ttl).to_string(),
             "max_body_bytes": self.max_body_bytes,
+            "min_free_bytes": self.min_free_bytes,
+            "storage_check_interval": humantime::format_duration(self.storage_check_interval).to_string(),
             "max_pixels": self.max_pixels,
             "max_uploads_per_client": self.max_uploads_per_client,
             "max_jobs_per_client": self.max_jobs_per_client,

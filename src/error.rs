@@ -16,6 +16,7 @@
 //! | `QueueFull` | 429 + `Retry-After` | RESOURCE_EXHAUSTED + `retry-after` |
 //! | `ClientLimit` | 429 + `Retry-After` | RESOURCE_EXHAUSTED + `retry-after` |
 //! | `Unavailable` | 503 | UNAVAILABLE |
+//! | `Storage` | 503 + `Retry-After` (`storage_full`, `storage_unavailable`) | UNAVAILABLE |
 //! | `Internal` | 500 | INTERNAL |
 
 use crate::frame::FrameError;
@@ -53,6 +54,10 @@ pub enum Error {
     /// Not ready (models loading) or draining for shutdown.
     #[error("{0}")]
     Unavailable(String),
+    /// The data directory cannot take the write: its disk is full (`full`), or it is
+    /// read-only, gone, not writable or failing. Not the request's fault; retry later.
+    #[error("{message}")]
+    Storage { full: bool, message: String },
     /// A bug or an I/O failure on the daemon's side. The message is logged in full and
     /// returned to clients (it names no secret: paths under the data directory at most).
     #[error("internal error: {0}")]
@@ -73,7 +78,39 @@ impl Error {
             Error::QueueFull { .. } => "queue_full",
             Error::ClientLimit { .. } => "client_limit",
             Error::Unavailable(_) => "unavailable",
+            Error::Storage { full: true, .. } => "storage_full",
+            Error::Storage { full: false, .. } => "storage_unavailable",
             Error::Internal(_) => "internal",
+        }
+    }
+
+    /// An I/O error of the data directory, by its cause: a full disk or quota is
+    /// `storage_full`; a read-only file system, a permission refused, a missing directory
+    /// or a device error is `storage_unavailable` (each named in the message); anything
+    /// else is internal.
+    pub fn storage(context: &str, e: &std::io::Error) -> Error {
+        use std::io::ErrorKind as K;
+        let cause = match e.kind() {
+            K::StorageFull | K::QuotaExceeded => Some((true, "no space left on the device")),
+            K::ReadOnlyFilesystem => Some((false, "the file system is read-only")),
+            K::PermissionDenied => Some((false, "permission denied")),
+            K::NotFound | K::NotADirectory => Some((false, "the path is gone (was the data directory moved?)")),
+            K::StaleNetworkFileHandle => Some((false, "stale network file handle")),
+            _ if e.raw_os_error() == Some(5) => Some((false, "input/output error from the device")),
+            _ => None,
+        };
+        match cause {
+            Some((full, why)) => Error::Storage { full, message: format!("{context}: {why} ({e})") },
+            None => Error::Internal(format!("{context}: {e}")),
+        }
+    }
+
+    /// The kind label of a storage error in metrics, `None` for other errors.
+    pub fn storage_kind(&self) -> Option<&'static str> {
+        match self {
+            Error::Storage { full: true, .. } => Some("full"),
+            Error::Storage { full: false, .. } => Some("unavailable"),
+            _ => None,
         }
     }
 

@@ -43,18 +43,31 @@ pub struct Server {
 }
 
 impl Server {
-    /// Binds the configured addresses and starts the daemon. Models load in the
-    /// background: `/livez` answers at once, `/readyz` once every worker is warmed up.
+    /// Takes the data directory, binds the configured addresses and starts the daemon.
+    /// Models load in the background: `/livez` answers at once, `/readyz` once every
+    /// worker is warmed up. A second daemon on the same data directory stops here, before
+    /// binding anything.
     pub async fn start(args: ServeArgs) -> anyhow::Result<Server> {
+        let lock = lock_data_dir(&args).await?;
         let http =
             TcpListener::bind(args.http).await.with_context(|| format!("cannot listen on {} (HTTP)", args.http))?;
         let grpc =
             TcpListener::bind(args.grpc).await.with_context(|| format!("cannot listen on {} (gRPC)", args.grpc))?;
-        Server::start_on(args, http, grpc).await
+        Server::start_locked(args, http, grpc, lock).await
     }
 
     /// Starts the daemon on listeners that are already bound.
     pub async fn start_on(args: ServeArgs, http: TcpListener, grpc: TcpListener) -> anyhow::Result<Server> {
+        let lock = lock_data_dir(&args).await?;
+        Server::start_locked(args, http, grpc, lock).await
+    }
+
+    async fn start_locked(
+        args: ServeArgs,
+        http: TcpListener,
+        grpc: TcpListener,
+        lock: crate::jobs::store::DataDirLock,
+    ) -> anyhow::Result<Server> {
         let http_addr = http.local_addr()?;
         let grpc_addr = grpc.local_addr()?;
         let telemetry = Arc::new(Telemetry::new());
@@ -86,6 +99,7 @@ impl Server {
         };
         let grpc_task = tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, tls.clone(), stop.clone()));
         let janitor = tokio::spawn(janitor(service.clone(), args.janitor_interval, stop.clone()));
+        let storage = tokio::spawn(storage_checks(service.clone(), args.storage_check_interval, stop.clone()));
         tracing::info!(http = %http_addr, grpc = %grpc_addr, tls = tls.is_some(), "listening");
 
         let task = tokio::spawn(run(
@@ -93,8 +107,9 @@ impl Server {
             workers,
             trigger.clone(),
             stop,
-            Transports { http: http_task, grpc: grpc_task, janitor },
+            Transports { http: http_task, grpc: grpc_task, janitor, storage },
             args.shutdown_timeout,
+            lock,
         ));
         Ok(Server { http_addr, grpc_addr, service, trigger, task })
     }
@@ -121,6 +136,17 @@ struct Transports {
     http: JoinHandle<std::io::Result<()>>,
     grpc: JoinHandle<anyhow::Result<()>>,
     janitor: JoinHandle<()>,
+    storage: JoinHandle<()>,
+}
+
+/// Takes the data directory's lock (waiting up to 10 s for a daemon that is still
+/// exiting).
+async fn lock_data_dir(args: &ServeArgs) -> anyhow::Result<crate::jobs::store::DataDirLock> {
+    let dir = args.data_dir.clone();
+    let lock =
+        tokio::task::spawn_blocking(move || crate::jobs::store::DataDirLock::acquire(&dir, Duration::from_secs(10)))
+            .await?;
+    Ok(lock?)
 }
 
 async fn run(
@@ -130,6 +156,8 @@ async fn run(
     stop: CancellationToken,
     mut transports: Transports,
     shutdown_timeout: Duration,
+    // Held until the daemon has stopped.
+    _lock: crate::jobs::store::DataDirLock,
 ) -> anyhow::Result<()> {
     let mut fatal = service.subscribe_fatal();
     let failure: Option<anyhow::Error> = tokio::select! {
@@ -177,10 +205,26 @@ async fn run(
         }
     }
     let _ = transports.janitor.await;
+    let _ = transports.storage.await;
     tracing::info!("stopped");
     match failure {
         Some(e) => Err(e),
         None => Ok(()),
+    }
+}
+
+/// Checks the data directory periodically (see `jobs::health`); the first check runs at
+/// once.
+async fn storage_checks(service: JobService, every: Duration, stop: CancellationToken) {
+    let mut tick = tokio::time::interval(every);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => break,
+            _ = tick.tick() => {
+                service.check_storage().await;
+            }
+        }
     }
 }
 

@@ -51,8 +51,17 @@ pub const STAGES: [&str; 7] = ["queue", "decode", "preprocess", "inference", "re
 /// Terminal outcomes (`mcdenoise_jobs_finished_total{outcome}`).
 pub const OUTCOMES: [&str; 3] = ["succeeded", "failed", "cancelled"];
 /// Why a submission was refused (`mcdenoise_jobs_rejected_total{reason}`).
-pub const REJECTIONS: [&str; 7] =
-    ["queue_full", "client_limit", "invalid", "too_large", "unavailable", "unauthenticated", "other"];
+pub const REJECTIONS: [&str; 9] = [
+    "queue_full",
+    "client_limit",
+    "invalid",
+    "too_large",
+    "unavailable",
+    "storage_full",
+    "storage_unavailable",
+    "unauthenticated",
+    "other",
+];
 pub const TRANSPORTS: [&str; 2] = ["http", "grpc"];
 
 /// The daemon's Prometheus metrics.
@@ -78,8 +87,16 @@ pub struct Telemetry {
     sanitized: Counter,
     fireflies: Counter,
     pixels: Counter,
+    storage_free_bytes: Gauge,
+    storage_healthy: Gauge,
+    storage_errors: Family<Labels, Counter>,
+    storage_quarantined: Counter,
+    storage_retries: Counter,
     last_scrape_len: AtomicU64,
 }
+
+/// Kinds of storage errors (`mcdenoise_storage_errors_total{kind}`).
+const STORAGE_ERRORS: [&str; 3] = ["full", "unavailable", "moved"];
 
 fn stage_histogram() -> Histogram {
     // 1 ms to ~33 min.
@@ -117,6 +134,11 @@ impl Telemetry {
             sanitized: Counter::default(),
             fireflies: Counter::default(),
             pixels: Counter::default(),
+            storage_free_bytes: Gauge::default(),
+            storage_healthy: Gauge::default(),
+            storage_errors: Family::default(),
+            storage_quarantined: Counter::default(),
+            storage_retries: Counter::default(),
             last_scrape_len: AtomicU64::new(0),
         };
         registry.register("queue_depth", "Jobs waiting in the queue, by priority class", t.queue_depth.clone());
@@ -159,6 +181,35 @@ impl Telemetry {
             "Input samples (pixel x component) clamped by the firefly handling",
             t.fireflies.clone(),
         );
+
+        registry.register(
+            "storage_free_bytes",
+            "Bytes available to the daemon on the data directory's file system",
+            t.storage_free_bytes.clone(),
+        );
+        registry.register(
+            "storage_healthy",
+            "1 while the data directory is the one opened, writable and above the free-space floor",
+            t.storage_healthy.clone(),
+        );
+        registry.register(
+            "storage_errors",
+            "Storage faults seen by the health check or by a write, by kind (full, unavailable, moved)",
+            t.storage_errors.clone(),
+        );
+        registry.register(
+            "storage_quarantined",
+            "Job directories and records that recovery could not account for, moved to quarantine/",
+            t.storage_quarantined.clone(),
+        );
+        registry.register(
+            "storage_retries",
+            "Runs put back in the queue because their input or result could not be read or written",
+            t.storage_retries.clone(),
+        );
+        for k in STORAGE_ERRORS {
+            let _ = t.storage_errors.get_or_create(&labels(&[("kind", k)]));
+        }
 
         for p in Priority::ALL {
             t.queue_depth.get_or_create(&labels(&[("priority", p.name())])).set(0);
@@ -207,6 +258,25 @@ impl Telemetry {
 
     pub fn job_rejected(&self, reason: &str) {
         self.jobs_rejected.get_or_create(&labels(&[("reason", reason)])).inc();
+    }
+
+    pub fn storage_error(&self, kind: &str) {
+        self.storage_errors.get_or_create(&labels(&[("kind", kind)])).inc();
+    }
+
+    pub fn storage_quarantined(&self) {
+        self.storage_quarantined.inc();
+    }
+
+    pub fn storage_retry(&self) {
+        self.storage_retries.inc();
+    }
+
+    pub fn set_storage(&self, healthy: bool, free_bytes: Option<u64>) {
+        self.storage_healthy.set(i64::from(healthy));
+        if let Some(b) = free_bytes {
+            self.storage_free_bytes.set(b.min(i64::MAX as u64) as i64);
+        }
     }
 
     pub fn job_interrupted(&self) {

@@ -549,6 +549,8 @@ mod tests {
             error: Some(JobError { code: JobErrorCode::Internal, message: "disk full".into() }),
             result_bytes: Some(123),
             client: Some("token:abc".into()),
+            storage_failures: 0,
+            rev: 0,
         };
         JobStatus { record, queue_position: 0 }
     }

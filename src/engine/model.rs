@@ -88,12 +88,23 @@ struct Opened {
 
 impl Opened {
     fn open(env: &ort::environment::Environment, path: &Path, threads: usize) -> Result<Opened, EngineError> {
-        if !path.is_file() {
-            return Err(model_error(path, "file not found"));
+        match std::fs::metadata(path) {
+            Ok(m) if m.is_file() => {}
+            Ok(_) => return Err(model_error(path, "not a file")),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(model_error(path, "file not found")),
+            Err(e) if e.kind() == std::io::ErrorKind::PermissionDenied => {
+                return Err(model_error(path, format!("permission denied: the daemon's user cannot read it ({e})")))
+            }
+            Err(e) => return Err(model_error(path, format!("cannot read: {e}"))),
         }
         let sha256 = std::fs::read(path)
             .map(|b| sha2::Sha256::digest(&b).iter().map(|x| format!("{x:02x}")).collect())
-            .map_err(|e| model_error(path, format!("cannot read: {e}")))?;
+            .map_err(|e| match e.kind() {
+                std::io::ErrorKind::PermissionDenied => {
+                    model_error(path, format!("permission denied: the daemon's user cannot read it ({e})"))
+                }
+                _ => model_error(path, format!("cannot read: {e}")),
+            })?;
         let session =
             build_session(env, path, threads.max(1)).map_err(|e| model_error(path, format!("cannot load: {e}")))?;
         let meta = {

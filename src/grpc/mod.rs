@@ -47,6 +47,12 @@ pub fn status(e: &Error) -> Status {
             s
         }
         Error::Unavailable(_) => Status::unavailable(message),
+        Error::Storage { .. } => {
+            let mut s = Status::unavailable(message);
+            s.metadata_mut().insert("retry-after", MetadataValue::from(5u64));
+            s.metadata_mut().insert("error-code", MetadataValue::from_static(e.code()));
+            s
+        }
         Error::Internal(_) => {
             tracing::error!(error = %message, "grpc call failed");
             Status::internal(message)
@@ -386,16 +392,22 @@ pub async fn serve(
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
         .build_v1alpha()?;
 
-    // Health follows readiness: SERVING only when models are loaded and not draining.
+    // Health follows readiness: SERVING only when models are loaded, not draining, and the
+    // data directory can take writes.
     let mut phase = service.subscribe_phase();
+    let mut storage = service.subscribe_storage();
     let health_task = tokio::spawn(async move {
         loop {
-            let serving = *phase.borrow_and_update() == Phase::Ready;
+            let serving = *phase.borrow_and_update() == Phase::Ready && storage.borrow_and_update().is_none();
             let status =
                 if serving { tonic_health::ServingStatus::Serving } else { tonic_health::ServingStatus::NotServing };
             reporter.set_service_status("", status).await;
             reporter.set_service_status("mcdenoise.v1.Denoiser", status).await;
-            if phase.changed().await.is_err() {
+            let changed = tokio::select! {
+                r = phase.changed() => r,
+                r = storage.changed() => r,
+            };
+            if changed.is_err() {
                 break;
             }
         }

@@ -29,7 +29,7 @@ pub fn status(e: &Error) -> StatusCode {
         Error::Conflict(_) => StatusCode::CONFLICT,
         Error::InProgress(_) => StatusCode::CONFLICT,
         Error::QueueFull { .. } | Error::ClientLimit { .. } => StatusCode::TOO_MANY_REQUESTS,
-        Error::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+        Error::Unavailable(_) | Error::Storage { .. } => StatusCode::SERVICE_UNAVAILABLE,
         Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
     }
 }
@@ -47,7 +47,7 @@ impl IntoResponse for ApiError {
             Error::QueueFull { retry_after_s, .. } | Error::ClientLimit { retry_after_s, .. } => {
                 response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(*retry_after_s));
             }
-            Error::Unavailable(_) => {
+            Error::Unavailable(_) | Error::Storage { .. } => {
                 response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(5u64));
             }
             Error::Unauthenticated(_) => {

@@ -29,7 +29,7 @@ pub use error::ApiError;
 
 use crate::auth::{ClientId, Tokens};
 use crate::error::Error;
-use crate::jobs::{Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, ListFilter, Phase, UploadPart};
+use crate::jobs::{Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, ListFilter, UploadPart};
 use crate::wire::{JobList, JobView, OptionsQuery};
 
 /// The OpenAPI 3.1 description of this API.
@@ -161,8 +161,14 @@ async fn livez() -> Json<Value> {
 
 async fn readyz(State(app): State<AppState>) -> Response {
     let phase = app.service.phase();
-    let code = if phase == Phase::Ready { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
-    (code, Json(json!({ "ready": phase == Phase::Ready, "phase": phase }))).into_response()
+    let storage = app.service.storage_problem();
+    let ready = app.service.is_ready();
+    let code = if ready { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
+    let storage = match storage {
+        None => json!({ "ok": true }),
+        Some(p) => json!({ "ok": false, "kind": p.kind, "reason": p.reason }),
+    };
+    (code, Json(json!({ "ready": ready, "phase": phase, "storage": storage }))).into_response()
 }
 
 async fn metrics(State(app): State<AppState>) -> Response {

@@ -45,6 +45,9 @@ impl JobService {
                 return Err(Error::Unavailable("shutting down: not accepting new jobs".into()))
             }
         }
+        if let Some(problem) = self.storage_problem() {
+            return Err(problem.error());
+        }
         if let (Some(v), Some(models)) = (options.variant, self.models()) {
             if !models.iter().any(|m| m.variant == v) {
                 let mut loaded: Vec<&str> = models.iter().map(|m| m.variant.name()).collect();
@@ -120,6 +123,8 @@ impl JobService {
             Error::BadRequest(_) | Error::InvalidFrame(_) => "invalid",
             Error::TooLarge(_) => "too_large",
             Error::Unavailable(_) => "unavailable",
+            Error::Storage { full: true, .. } => "storage_full",
+            Error::Storage { full: false, .. } => "storage_unavailable",
             Error::Unauthenticated(_) => "unauthenticated",
             Error::NotFound(_) | Error::Conflict(_) | Error::InProgress(_) | Error::Internal(_) => "other",
         };
@@ -167,6 +172,8 @@ impl JobService {
             error: None,
             result_bytes: None,
             client: Some(ticket.client().as_str().to_string()),
+            storage_failures: 0,
+            rev: 0,
         };
         self.inner.store.put(&record)?;
         let mut st = self.lock();

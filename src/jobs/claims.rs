@@ -14,7 +14,7 @@ use std::time::Instant;
 use super::lifecycle::{deadline_passed, Ending, Finished};
 use super::{lock_poisoned, JobService};
 use crate::engine::{ModelInfo, Variant};
-use crate::jobs::{FireflyCounts, JobError, JobErrorCode, JobEvent, JobRecord, JobState, Layer, Phase, Progress};
+use crate::jobs::{FireflyCounts, JobError, JobErrorCode, JobEvent, JobState, Layer, Phase, Progress};
 use crate::pipeline;
 
 /// A job handed to a worker.
@@ -37,6 +37,9 @@ pub(crate) enum Outcome {
     Succeeded(Box<Success>),
     Failed(JobError, Option<crate::jobs::Timings>),
     Cancelled,
+    /// The input could not be read or the result written for a storage reason: back to
+    /// the queue after a pause (bounded; see `JobService::retry_later`).
+    StorageFault(String),
     /// Stopped by the shutdown deadline: back to the queue for the next start.
     Interrupted,
 }
@@ -112,7 +115,10 @@ impl WorkerLink {
                     match s.phase() {
                         Phase::Draining | Phase::Stopped => return None,
                         Phase::Loading => {}
+                        // No claims while the data directory cannot take results.
+                        Phase::Ready if s.storage_problem().is_some() => {}
                         Phase::Ready => {
+                            s.promote_due(&mut st);
                             if let Some(id) = st.queue.pop() {
                                 s.update_depth(&st);
                                 let now = s.now();
@@ -127,7 +133,16 @@ impl WorkerLink {
                             }
                         }
                     }
-                    st = s.inner.work.wait(st).unwrap_or_else(lock_poisoned);
+                    st = if st.delayed.is_empty() {
+                        s.inner.work.wait(st).unwrap_or_else(lock_poisoned)
+                    } else {
+                        // A delayed job becomes due without anyone notifying.
+                        s.inner
+                            .work
+                            .wait_timeout(st, std::time::Duration::from_millis(200))
+                            .unwrap_or_else(lock_poisoned)
+                            .0
+                    };
                 }
             };
             if let Some(prepared) = overdue {
@@ -184,16 +199,22 @@ impl WorkerLink {
         let s = &self.service;
         let id = claim.id.as_str();
         let ending = match outcome {
-            Outcome::Interrupted => None,
+            Outcome::Interrupted => Ok(None),
+            Outcome::StorageFault(message) => Err(message),
             Outcome::Succeeded(success) => self.write_result(id, *success),
-            Outcome::Failed(error, timings) => Some(Ending::Failed(error, timings)),
-            Outcome::Cancelled => Some(Ending::Cancelled),
+            Outcome::Failed(error, timings) => Ok(Some(Ending::Failed(error, timings))),
+            Outcome::Cancelled => Ok(Some(Ending::Cancelled)),
         };
         match ending {
-            None => s.requeue(id),
-            Some(ending) => {
-                let _ = s.settle(&s.journal(), id, ending);
+            Ok(None) => s.requeue(id),
+            Ok(Some(ending)) => {
+                let settled = s.settle(&s.journal(), id, ending);
+                if let Err(e) = settled {
+                    // Its end could not be written: it stays running in memory; run it again.
+                    s.retry_later(id, format!("cannot record the job's end: {e}"));
+                }
             }
+            Err(message) => s.retry_later(id, message),
         }
         if !s.lock().jobs.contains_key(id) {
             // Deleted while it ran: whatever it wrote goes.
@@ -206,10 +227,11 @@ impl WorkerLink {
     }
 
     /// Writes the result (summary, then the EXR, each atomically) before the record says
-    /// `succeeded`; the ending to settle. `None` if the job was deleted while it ran.
-    fn write_result(&self, id: &str, s: Success) -> Option<Ending> {
+    /// `succeeded`; the ending to settle. `None` if the job was deleted while it ran; the
+    /// message of a storage fault when the result cannot be written for a storage reason.
+    fn write_result(&self, id: &str, s: Success) -> Result<Option<Ending>, String> {
         let service = &self.service;
-        let record: JobRecord = service.lock().jobs.get(id).map(|e| e.record.clone())?;
+        let Some(record) = service.lock().jobs.get(id).map(|e| e.record.clone()) else { return Ok(None) };
         let t = Instant::now();
         let out = s.output;
         let mut finished = Finished {
@@ -239,8 +261,12 @@ impl WorkerLink {
             .and_then(|json| crate::atomic::write(&service.inner.store.summary_path(id), &json))
             .and_then(|()| crate::atomic::write(&service.inner.store.result_path(id), &out.encoded));
         if let Err(e) = written {
-            let message = format!("cannot write the result: {e}");
-            return Some(Ending::Failed(JobError { code: JobErrorCode::Internal, message }, None));
+            let e = crate::error::Error::storage("cannot write the result", &e);
+            if e.storage_kind().is_some() {
+                service.storage_failed(&e);
+                return Err(e.to_string());
+            }
+            return Ok(Some(Ending::Failed(JobError { code: JobErrorCode::Internal, message: e.to_string() }, None)));
         }
         finished.timings.encode += t.elapsed().as_secs_f64() * 1e3;
         finished.timings.total = s.started.elapsed().as_secs_f64() * 1e3;
@@ -258,6 +284,6 @@ impl WorkerLink {
         }
         tel.job_output((out.width * out.height) as u64, finished.sanitized.total);
         tel.fireflies_handled(finished.fireflies.handled);
-        Some(Ending::Succeeded(Box::new(finished)))
+        Ok(Some(Ending::Succeeded(Box::new(finished))))
     }
 }

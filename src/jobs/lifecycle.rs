@@ -16,7 +16,7 @@ use super::{not_found, JobService, Journal, State};
 use crate::error::{Error, Result};
 use crate::jobs::{
     FireflyCounts, JobError, JobErrorCode, JobEvent, JobMetrics, JobRecord, JobState, JobStatus, Phase, Progress,
-    SanitizedCounts, Timings,
+    SanitizedCounts, Timings, MAX_STORAGE_FAILURES,
 };
 
 /// The fields a successful run fills in.
@@ -103,9 +103,10 @@ impl JobService {
     }
 
     /// Makes a prepared final state durable, then visible: the record is written, the
-    /// memory updated, the terminal event sent, the uploaded frames removed. A failed
-    /// write is logged and returned, but the job ends in memory all the same (at the next
-    /// start, recovery finds the older record and runs the job again or adopts its result).
+    /// memory updated, the terminal event sent, the uploaded frames removed. A state that
+    /// cannot be written is never shown: the job stays as it was in memory (a queued job
+    /// goes back into the queue) and the error is returned, so no client sees a final state
+    /// that a restart could take back.
     pub(super) fn commit(&self, _journal: &Journal<'_>, prepared: Prepared) -> Result<Option<JobStatus>> {
         let Prepared { id, from, next, event } = prepared;
         let current = self.lock().jobs.get(&id).map(|e| e.record.state);
@@ -113,9 +114,15 @@ impl JobService {
             // Deleted or ended by someone else since `prepare`.
             return Ok(None);
         }
-        let written = self.inner.store.put(&next);
-        if let Err(e) = &written {
-            tracing::error!(job_id = id.as_str(), error = %e, "cannot persist the job's end");
+        if let Err(e) = self.inner.store.put(&next) {
+            tracing::error!(job_id = id.as_str(), error = %e, state = next.state.name(), "cannot persist the job's end; it stays {}", from.name());
+            self.storage_failed(&e);
+            if from == JobState::Queued {
+                let mut st = self.lock();
+                st.queue.push(next.options.priority, next.seq, id.clone());
+                self.update_depth(&st);
+            }
+            return Err(e);
         }
         let state = next.state;
         let run_ms = next.timings.map(|t| t.total).unwrap_or(0.0);
@@ -143,7 +150,7 @@ impl JobService {
             }
             (None, _) => tracing::info!(job_id = id.as_str(), state = state.name(), from = from.name(), "finished"),
         }
-        written.map(|()| Some(status))
+        Ok(Some(status))
     }
 
     /// `prepare` and `commit` in one.
@@ -163,6 +170,7 @@ impl JobService {
         if let Err(e) = self.inner.store.put(&record) {
             // The job still runs; after a crash it would run again, which is safe.
             tracing::error!(job_id = id, error = %e, "cannot persist the job's state");
+            self.storage_failed(&e);
         }
     }
 
@@ -180,6 +188,7 @@ impl JobService {
         };
         if let Err(e) = self.inner.store.put(&next) {
             tracing::error!(job_id = id, error = %e, "cannot persist the interrupted job");
+            self.storage_failed(&e);
         }
         let mut st = self.lock();
         st.queue.push(next.options.priority, next.seq, next.id.clone());
@@ -191,6 +200,71 @@ impl JobService {
         drop(journal);
         self.inner.telemetry.job_interrupted();
         tracing::info!(job_id = id, "interrupted by shutdown; queued for the next start");
+    }
+
+    /// Puts a running job whose input could not be read or whose result could not be
+    /// written for a storage reason back in the queue after a pause (1 s, doubling, at
+    /// most 30 s); after [`MAX_STORAGE_FAILURES`] such runs it fails with code `storage`.
+    pub(super) fn retry_later(&self, id: &str, message: String) {
+        let journal = self.journal();
+        let failures = {
+            let mut st = self.lock();
+            let Some(entry) = st.jobs.get_mut(id).filter(|e| e.record.state == JobState::Running) else { return };
+            entry.record.storage_failures += 1;
+            entry.record.storage_failures
+        };
+        self.inner.telemetry.storage_retry();
+        if failures >= MAX_STORAGE_FAILURES {
+            let error = JobError {
+                code: JobErrorCode::Storage,
+                message: format!("gave up after {failures} runs that hit a storage fault; the last: {message}"),
+            };
+            if self.settle(&journal, id, Ending::Failed(error, None)).is_ok() {
+                return;
+            }
+            // Not even the failure can be written: keep it queued until storage heals.
+        }
+        let next = {
+            let st = self.lock();
+            let Some(entry) = st.jobs.get(id) else { return };
+            let mut next = entry.record.clone();
+            next.state = JobState::Queued;
+            next.progress = Progress::default();
+            next
+        };
+        if let Err(e) = self.inner.store.put(&next) {
+            // Queued and running are both re-run after a restart: nothing to lose.
+            tracing::debug!(job_id = id, error = %e, "cannot persist the re-queued job");
+        }
+        let delay_ms = (1000i64 << (failures.saturating_sub(1)).min(5)).min(30_000);
+        let mut st = self.lock();
+        if let Some(entry) = st.jobs.get_mut(id) {
+            entry.record = next;
+            let _ = entry.events.send(JobEvent::Progress(Progress::default()));
+        }
+        st.delayed.push((self.now() + delay_ms, id.to_string()));
+        drop(st);
+        drop(journal);
+        tracing::warn!(job_id = id, failures, retry_in_ms = delay_ms, error = %message, "storage fault: queued again after a pause");
+        self.inner.work.notify_all();
+    }
+
+    /// Moves the delayed jobs that are due into the queue (under the caller's state lock).
+    pub(super) fn promote_due(&self, st: &mut State) {
+        if st.delayed.is_empty() {
+            return;
+        }
+        let now = self.now();
+        let (due, waiting): (Vec<_>, Vec<_>) =
+            std::mem::take(&mut st.delayed).into_iter().partition(|(t, _)| *t <= now);
+        st.delayed = waiting;
+        for (_, id) in due {
+            if let Some(entry) = st.jobs.get(&id).filter(|e| e.record.state == JobState::Queued) {
+                let r = &entry.record;
+                st.queue.push(r.options.priority, r.seq, id.clone());
+            }
+        }
+        self.update_depth(st);
     }
 
     // --- Changes asked for by clients ------------------------------------------------------

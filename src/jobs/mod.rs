@@ -18,6 +18,7 @@
 //! - `queries`: reads: get, list, watch, events, results.
 //! - `recovery`: the state rebuilt from the store at startup (after a crash too).
 //! - [`store`]: the redb database and the files of each job.
+//! - [`health`]: whether the data directory can take writes (readiness, admission).
 //! - [`queue`]: priority classes, FIFO within a class.
 //! - [`validate`]: the EXR header checks done at submission.
 //! - `worker`: OS threads, each owning a [`Denoiser`](crate::engine::Denoiser), that run
@@ -48,6 +49,7 @@
 
 mod admission;
 mod claims;
+mod health;
 mod lifecycle;
 mod queries;
 pub mod queue;
@@ -76,6 +78,7 @@ use crate::error::{Error, Result};
 use crate::frame::Limits;
 use crate::telemetry::Telemetry;
 pub use admission::Admission;
+pub use health::StorageProblem;
 pub use queries::ListFilter;
 use queue::Queue;
 pub use record::*;
@@ -117,6 +120,8 @@ pub struct Settings {
     pub engine: EngineConfig,
     /// Firefly handling of jobs that do not choose their own.
     pub fireflies: Fireflies,
+    /// Free bytes the data directory must keep (see [`health`]).
+    pub min_free_bytes: u64,
 }
 
 impl Settings {
@@ -137,6 +142,7 @@ impl Settings {
             workers: args.workers(),
             engine,
             fireflies: args.fireflies.settings(),
+            min_free_bytes: args.min_free_bytes,
         }
     }
 
@@ -181,6 +187,9 @@ struct State {
     workers_ready: usize,
     /// Moving average of the run time of recent jobs, for `Retry-After`.
     avg_run_ms: f64,
+    /// Queued jobs waiting out a backoff after a storage failure: (due, Unix ms; id). They
+    /// enter the queue when due.
+    delayed: Vec<(i64, String)>,
 }
 
 struct Inner {
@@ -200,6 +209,10 @@ struct Inner {
     /// Set at the shutdown deadline: running jobs stop at their next tile and are requeued.
     abort: AtomicBool,
     models: OnceLock<Vec<ModelInfo>>,
+    /// The data directory's problem, `None` while healthy (see [`health`]).
+    storage: watch::Sender<Option<StorageProblem>>,
+    /// Device and inode of the data directory when the store was opened.
+    opened: (u64, u64),
 }
 
 /// The core handle. Cheap to clone.
@@ -241,6 +254,8 @@ impl JobService {
         clock: Clock,
     ) -> Result<(JobService, Vec<std::thread::JoinHandle<()>>)> {
         let store = Store::open(data_dir)?;
+        let opened = health::identity(data_dir)
+            .map_err(|e| Error::storage(&format!("data directory {}", data_dir.display()), &e))?;
         let state = recovery::recover(&store, &settings, &telemetry, clock())?;
         telemetry.set_queue_capacity(settings.capacity);
         telemetry.set_workers(settings.workers, 0);
@@ -262,6 +277,8 @@ impl JobService {
                 fatal: watch::channel(None).0,
                 abort: AtomicBool::new(false),
                 models: OnceLock::new(),
+                storage: watch::channel(None).0,
+                opened,
             }),
         };
         let workers = worker::spawn(claims::WorkerLink::new(service.clone()), denoisers, service.settings().workers)
@@ -344,7 +361,7 @@ impl JobService {
 
     fn set_phase(&self, phase: Phase) {
         self.inner.phase.send_replace(phase);
-        self.inner.telemetry.set_ready(phase == Phase::Ready);
+        self.inner.telemetry.set_ready(self.is_ready());
     }
 
     fn status_of(&self, st: &State, entry: &Entry) -> JobStatus {

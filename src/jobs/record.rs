@@ -238,6 +238,9 @@ pub enum JobErrorCode {
     DeadlineExceeded,
     /// ONNX Runtime failed.
     Inference,
+    /// The job's input could not be read or its result written for a storage reason
+    /// (full disk, read-only file system...) on [`MAX_STORAGE_FAILURES`] runs in a row.
+    Storage,
     /// I/O or another failure on the daemon's side.
     Internal,
 }
@@ -251,11 +254,12 @@ impl std::str::FromStr for JobErrorCode {
 }
 
 impl JobErrorCode {
-    pub const ALL: [JobErrorCode; 5] = [
+    pub const ALL: [JobErrorCode; 6] = [
         JobErrorCode::InvalidFrame,
         JobErrorCode::NoModel,
         JobErrorCode::DeadlineExceeded,
         JobErrorCode::Inference,
+        JobErrorCode::Storage,
         JobErrorCode::Internal,
     ];
 
@@ -265,6 +269,7 @@ impl JobErrorCode {
             JobErrorCode::NoModel => "no_model",
             JobErrorCode::DeadlineExceeded => "deadline_exceeded",
             JobErrorCode::Inference => "inference",
+            JobErrorCode::Storage => "storage",
             JobErrorCode::Internal => "internal",
         }
     }
@@ -315,6 +320,21 @@ pub struct JobRecord {
     /// Who submitted it (`token:<digest prefix>` or `ip:<address>`), for per-client limits.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub client: Option<String>,
+    /// Runs whose input could not be read or whose result could not be written for a
+    /// storage reason (full disk, read-only file system...); the job is queued again until
+    /// a bound ([`MAX_STORAGE_FAILURES`]).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub storage_failures: u32,
+    /// Revision of the stored copy (set by the store at each write; see `jobs::store`).
+    #[serde(default)]
+    pub rev: u64,
+}
+
+/// Storage failures after which a job fails instead of being queued again.
+pub const MAX_STORAGE_FAILURES: u32 = 5;
+
+fn is_zero(n: &u32) -> bool {
+    *n == 0
 }
 
 /// A job as clients see it: the record plus its live queue position.

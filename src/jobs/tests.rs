@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use futures_util::StreamExt;
 
-use super::store::Store;
+use super::store::{Store, RECORD_FILE};
 use super::*;
 use crate::engine::{Component, Denoised, Denoiser, EngineError, ModelInfo, Progress as TileProgress, Variant};
 use crate::frame::{Frame, SampleType};
@@ -128,6 +128,7 @@ fn settings(capacity: usize) -> Settings {
         workers: 1,
         engine,
         fireflies: Default::default(),
+        min_free_bytes: 0,
     }
 }
 
@@ -357,7 +358,20 @@ fn record(id: &str, seq: u64, state: JobState) -> JobRecord {
         error: None,
         result_bytes: None,
         client: None,
+        storage_failures: 0,
+        rev: 0,
     }
+}
+
+/// Writes `record` as a daemon would: into its job directory and the database.
+fn put(store: &Store, record: &JobRecord) {
+    std::fs::create_dir_all(store.job_dir(&record.id)).unwrap();
+    store.put(record).unwrap();
+}
+
+fn write_file(store: &Store, id: &str, name: &str, bytes: &[u8]) {
+    std::fs::create_dir_all(store.job_dir(id)).unwrap();
+    std::fs::write(store.job_dir(id).join(name), bytes).unwrap();
 }
 
 #[tokio::test(start_paused = true)]
@@ -366,29 +380,27 @@ async fn recovery_after_a_crash_requeues_adopts_fails_and_forgets_as_documented(
     {
         // The store as a killed daemon leaves it.
         let store = Store::open(dir.path()).unwrap();
-        let write = |id: &str, name: &str, bytes: &[u8]| {
-            std::fs::create_dir_all(store.job_dir(id)).unwrap();
-            std::fs::write(store.job_dir(id).join(name), bytes).unwrap();
-        };
+        let write = |id: &str, name: &str, bytes: &[u8]| write_file(&store, id, name, bytes);
         // Interrupted while running: queued again, with a half-written result to clean up.
-        store.put(&record("interrupted", 1, JobState::Running)).unwrap();
+        put(&store, &record("interrupted", 1, JobState::Running));
         write("interrupted", "input.exr", &frame_bytes(32, 16));
         write("interrupted", "result.exr.part", b"half");
         // Finished just before the crash: its summary and result are adopted.
         let mut done = record("finished", 2, JobState::Succeeded);
         done.result_bytes = Some(4);
-        store.put(&record("finished", 2, JobState::Running)).unwrap();
+        put(&store, &record("finished", 2, JobState::Running));
         write("finished", "result.json", &serde_json::to_vec(&done).unwrap());
         write("finished", "result.exr", b"done");
         write("finished", "input.exr", &frame_bytes(32, 16));
-        // Queued, but its upload is gone.
-        store.put(&record("lost", 3, JobState::Queued)).unwrap();
+        // Queued, but its upload (its whole directory) is gone.
+        put(&store, &record("lost", 3, JobState::Queued));
+        std::fs::remove_dir_all(store.job_dir("lost")).unwrap();
         // Expired while the daemon was down.
         let mut old = record("expired", 4, JobState::Failed);
         old.expires_at_ms = Some(now_ms() - 1);
-        store.put(&old).unwrap();
+        put(&store, &old);
         write("expired", "result.json", b"{}");
-        // An upload cut short: files without a record.
+        // An upload cut short: a directory with only a temporary file.
         write("orphan", "input.exr.part", b"partial");
     }
     let gate = Gate::closed();
@@ -407,6 +419,62 @@ async fn recovery_after_a_crash_requeues_adopts_fails_and_forgets_as_documented(
     let jobs = h.dir.path().join("jobs");
     assert!(!jobs.join("expired").exists() && !jobs.join("orphan").exists());
     assert!(!jobs.join("interrupted").join("result.exr.part").exists());
+    assert!(!h.dir.path().join("quarantine").exists(), "nothing to quarantine");
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_lost_or_rolled_back_database_is_rebuilt_from_the_job_directories() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let store = Store::open(dir.path()).unwrap();
+        put(&store, &record("queued", 1, JobState::Queued));
+        write_file(&store, "queued", "input.exr", &frame_bytes(32, 16));
+        let mut done = record("done", 2, JobState::Succeeded);
+        done.expires_at_ms = Some(now_ms() + 3_600_000);
+        put(&store, &done);
+        write_file(&store, "done", "result.exr", b"done");
+        // A later state that only the directory's copy has (the database rolled back).
+        put(&store, &record("cancelled", 3, JobState::Queued));
+        write_file(&store, "cancelled", "input.exr", &frame_bytes(32, 16));
+        let mut later = record("cancelled", 3, JobState::Cancelled);
+        later.rev = 1_000;
+        later.expires_at_ms = Some(now_ms() + 3_600_000);
+        std::fs::write(store.record_path("cancelled"), serde_json::to_vec(&later).unwrap()).unwrap();
+    }
+    std::fs::remove_file(dir.path().join("jobs.redb")).unwrap();
+    let gate = Gate::closed();
+    gate.open();
+    let h = Harness::start_in(dir, settings(8), gate).await;
+    h.until_state("queued", JobState::Succeeded).await;
+    assert_eq!(h.service.get("done").unwrap().record.state, JobState::Succeeded);
+    assert_eq!(h.service.get("cancelled").unwrap().record.state, JobState::Cancelled, "no terminal state reversed");
+    assert_eq!(h.seen.lock().unwrap().len(), 1, "only the queued job ran");
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
+async fn what_no_record_accounts_for_is_quarantined_not_deleted() {
+    let dir = tempfile::tempdir().unwrap();
+    {
+        let store = Store::open(dir.path()).unwrap();
+        // Files with no record anywhere.
+        write_file(&store, "stray", "input.exr", b"frame");
+        // A record in neither copy that can be read.
+        write_file(&store, "garbled", "input.exr", b"frame");
+        write_file(&store, "garbled", RECORD_FILE, b"{ not json");
+    }
+    let h = Harness::start_in(dir, settings(8), Gate::closed()).await;
+    let quarantine: Vec<String> = std::fs::read_dir(h.dir.path().join("quarantine"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
+    assert_eq!(quarantine.len(), 2, "{quarantine:?}");
+    for name in ["stray.", "garbled."] {
+        let kept = quarantine.iter().find(|q| q.starts_with(name)).unwrap();
+        assert!(h.dir.path().join("quarantine").join(kept).join("input.exr").is_file());
+    }
+    assert!(h.service.telemetry().render().contains("mcdenoise_storage_quarantined_total 2"));
     h.stop();
 }
 

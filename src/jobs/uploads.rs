@@ -104,8 +104,21 @@ impl Ticket {
             UploadPart::Reference => store.reference_path(&self.id),
         };
         let dir = store.job_dir(&self.id);
-        tokio::fs::create_dir_all(&dir).await.map_err(|e| Error::internal("cannot create the job directory", e))?;
-        let file = AsyncFile::create(&path).await.map_err(|e| Error::internal("cannot create the upload file", e))?;
+        // Not `create_dir_all`: a data directory moved away must not be re-created here.
+        match tokio::fs::create_dir(&dir).await {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) => {
+                let e = Error::storage("cannot create the job directory", &e);
+                self.service.storage_failed(&e);
+                return Err(e);
+            }
+        }
+        let file = AsyncFile::create(&path).await.map_err(|e| {
+            let e = Error::storage("cannot create the upload file", &e);
+            self.service.storage_failed(&e);
+            e
+        })?;
         Ok(Sink {
             file,
             part,
@@ -200,11 +213,11 @@ impl Sink {
         if self.written > self.limit {
             return Err(Error::TooLarge(format!("the upload is over the limit of {} bytes", self.max_body)));
         }
-        self.file.write_all(data).await.map_err(|e| Error::internal("cannot write the upload", e))
+        self.file.write_all(data).await.map_err(|e| Error::storage("cannot write the upload", &e))
     }
 
     async fn finish(self) -> Result<u64> {
-        self.file.commit().await.map_err(|e| Error::internal("cannot store the upload", e))?;
+        self.file.commit().await.map_err(|e| Error::storage("cannot store the upload", &e))?;
         Ok(self.written)
     }
 }

@@ -116,8 +116,10 @@ fn run(link: &WorkerLink, denoiser: &mut dyn Denoiser, claim: &Claim) -> Outcome
 /// The job error of a pipeline failure.
 fn failed_by(e: Failure) -> Outcome {
     match e {
+        // The upload was on disk when the job was accepted: not reading it now is a
+        // storage fault (retried), not the job's.
         Failure::Read { which: Input::Frame, error } => {
-            failed(JobErrorCode::Internal, format!("cannot read the uploaded frame: {error}"))
+            Outcome::StorageFault(crate::error::Error::storage("cannot read the uploaded frame", &error).to_string())
         }
         e @ (Failure::Read { which: Input::Reference, .. } | Failure::Invalid { .. } | Failure::SizeMismatch(_)) => {
             failed(JobErrorCode::InvalidFrame, e.to_string())
