@@ -33,6 +33,7 @@ import numpy as np
 
 from . import evaluate, export, train
 from .checkpoint import load_checkpoint
+from .files import read_jsonl
 
 # The shipped architecture (Makefile TRAIN_ARGS), shared by every variant unless overridden.
 BASE = ["--width", "24", "--blocks", "4", "--predictor-width", "48", "--predictor-depth", "4",
@@ -67,14 +68,14 @@ def run_variant(name: str, a: argparse.Namespace) -> dict:
     nets, meta = load_checkpoint(run / "best.pt")
     summary = {"name": name, "args": VARIANTS[name], "steps": a.steps, "best_step": meta.get("step"),
                "params": nets["diffuse"].param_count(), "flops_per_pixel": nets["diffuse"].flops_per_pixel(),
-               "train_seconds": json.loads((run / "log.jsonl").read_text().splitlines()[-1])["time"]}
+               "train_seconds": read_jsonl(run / "log.jsonl")[-1]["time"]}
     for split, data in (("val", a.data), ("test", a.test_data)):
         if not data:
             continue
         ev = run / f"eval-{split}"
         evaluate.main(["--data", data, "--split", a.test_split if split == "test" else "val",
                        "--method", f"{name}={models}:{variant}", "--threads", str(a.threads), "--out", str(ev)])
-        rows = [json.loads(l) for l in (ev / "results.jsonl").read_text().splitlines()]
+        rows = read_jsonl(ev / "results.jsonl")
         for method in ("input", name):
             sel = [r for r in rows if r["method"] == method]
             key = "input" if method == "input" else "model"

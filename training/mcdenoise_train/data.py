@@ -1,9 +1,9 @@
 """Training data: frames preprocessed by the Rust engine, and patch sampling.
 
 A data set directory holds `manifest.jsonl` as written by `datagen.dataset` (one record
-per scene, see `read_manifest`). Every frame is turned into
-network inputs and training targets by `mcdenoise preprocess --reference` (the engine's
-implementation, so training and serving see the same tensors), cached as
+per scene, read by `files.read_manifest`; `manifest_frames` lists its frames). Every
+frame is turned into network inputs and training targets by `mcdenoise preprocess
+--reference` (the engine's implementation, so training and serving see the same tensors), cached as
 `<data>/preprocessed/<name>.npz` next to the frames and redone when a source is newer.
 
 Patches are drawn as in KPCN (Bako et al. 2017): most of them by importance, favouring
@@ -13,7 +13,6 @@ uniformly, so flat regions are still seen.
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 from dataclasses import dataclass
@@ -22,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .contract import select_nocov
+from .files import read_manifest
 
 ARRAYS = ("diffuse_color", "specular_color", "features", "albedo", "noisy",
           "diffuse_target", "specular_target", "reference")
@@ -35,7 +35,7 @@ def engine_binary() -> str:
     return path
 
 
-def read_manifest(data_dir: str | os.PathLike) -> list[dict]:
+def manifest_frames(data_dir: str | os.PathLike) -> list[dict]:
     """One record per noisy frame, with absolute `noisy` and `reference` paths.
 
     Accepts the data generator's per-scene records (`frames` maps each sample count and
@@ -44,8 +44,7 @@ def read_manifest(data_dir: str | os.PathLike) -> list[dict]:
     """
     data_dir = Path(data_dir)
     records = []
-    with open(data_dir / "manifest.jsonl") as f:
-        lines = [json.loads(line) for line in f if line.strip()]
+    lines = read_manifest(data_dir / "manifest.jsonl")
     # A scene rendered again appends a new record: the last one wins.
     last = {r["scene"]: i for i, r in enumerate(lines) if "frames" in r}
     for i, r in enumerate(lines):
@@ -95,7 +94,7 @@ class Frame:
 def load_frames(data_dir: str | os.PathLike, split: str, variant: str, limit: int | None = None) -> list[Frame]:
     """The frames of one split, preprocessed, with the variant's features."""
     frames = []
-    for r in [r for r in read_manifest(data_dir) if r.get("split", "train") == split][:limit]:
+    for r in [r for r in manifest_frames(data_dir) if r.get("split", "train") == split][:limit]:
         with np.load(preprocessed(r, data_dir)) as z:
             arrays = {k: z[k].astype(np.float32) for k in ARRAYS}
         if variant == "nocov":

@@ -30,8 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import engine_binary, read_manifest
-from .frames import read_exr, write_exr
+from .data import engine_binary, manifest_frames
+from .exr import read_exr, write_exr
+from .files import write_jsonl
 
 METRICS = ("relmse", "dssim", "psnr", "smape")
 
@@ -274,7 +275,7 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    records = [r for r in read_manifest(a.data) if r.get("split") == a.split][: a.limit]
+    records = [r for r in manifest_frames(a.data) if r.get("split") == a.split][: a.limit]
     if not records:
         raise SystemExit(f"{a.data}: no frames in split {a.split!r}")
     rows = []
@@ -311,14 +312,10 @@ def main(argv=None) -> int:
                 images["reference"] = rgb_of(r["reference"])
                 save_crops(images, out / "crops" / f"{base['scene']}.png")
             print(f"{base['frame']}: " + ", ".join(f"{x['method']} {x['relmse']:.4g}" for x in rows if x["frame"] == base["frame"]), flush=True)
-    with open(out / "results.jsonl", "w") as f:
-        for row in rows:
-            f.write(json.dumps(row) + "\n")
+    write_jsonl(out / "results.jsonl", rows)
     summary = summarize(rows)
     if outlier_rows:
-        with open(out / "outliers.jsonl", "w") as f:
-            for row in outlier_rows:
-                f.write(json.dumps(row) + "\n")
+        write_jsonl(out / "outliers.jsonl", outlier_rows)
         summary += summarize_outliers(outlier_rows)
     (out / "results.md").write_text(summary)
     plot(rows, out / "quality.png")

@@ -28,6 +28,7 @@ import numpy as np
 import onnx
 import torch
 
+from .checkpoint import load_msnet
 from .contract import COLOR_CHANNELS, FEATURES_FULL, NOCOV_INDICES, feature_names, variant_for
 from .export import read_metadata as read_metadata_v2
 from .export import write_model
@@ -147,16 +148,6 @@ def export_onnx(model: MSNet, path: str | os.PathLike, variant: str, verify: boo
     return proto
 
 
-def load_msnet(path: str | os.PathLike) -> MSNet:
-    """The network of a v2 checkpoint (`{"config": ..., "state_dict": ...}`), eval mode."""
-    ck = torch.load(path, map_location="cpu", weights_only=True)
-    cfg = dict(ck["config"])
-    cfg.pop("arch", None)
-    net = MSNet(**cfg)
-    net.load_state_dict(ck["state_dict"])
-    return net.eval()
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m mcdenoise_train.export_ms", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -178,7 +169,7 @@ def main(argv=None) -> int:
                 for h in [*net.kernel_heads, *net.blend_heads]:
                     h.weight.mul_(a.head_gain)
     else:
-        net = load_msnet(a.checkpoint)
+        net, _ = load_msnet(a.checkpoint)
     for v in variants:
         m = net if v == "full" else nocov_from_full(net)
         path = Path(a.out) / v / "model.onnx"

@@ -1,48 +1,16 @@
-"""Frame files: OpenEXR I/O in the layout of docs/frame-layout.md, and synthetic frames.
-
-`write_exr` writes a single-part scanline EXR from a dict of 2-D arrays keyed by full
-channel name (`diffuse.R`, `depth.Z`, `covariance`, ...), float32 by default or half;
-`read_exr` returns such a dict (float32 arrays) from any single-part file.
+"""Synthetic frames: every channel of the layout of docs/frame-layout.md, for tests and benchmarks.
 
 `synthetic_frame` makes a frame with every channel of the layout (the covariance pair
 optional) from smooth random fields: sinusoid mixtures plus a disc whose edge puts
 discontinuities into albedo, normal, depth and covariance, a no-hit corner (depth,
 albedo, normal, diffuse and their variances 0; only specular light), and per-pixel noise on the radiance (with a few fireflies in the specular). It is meant
-for tests and benchmarks of the engine and the networks, not as training data.
+for tests and benchmarks of the engine and the networks, not as training data. Frames are
+written and read by `exr.py`.
 """
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
-import OpenEXR
-
-LUMINANCE = (0.2126, 0.7152, 0.0722)
-
-
-def write_exr(path: str | os.PathLike, channels: dict[str, np.ndarray], half: bool = False) -> None:
-    """Write `channels` (name -> [H, W] array) as a single-part, ZIP-compressed EXR."""
-    shapes = {np.shape(a) for a in channels.values()}
-    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
-        raise ValueError(f"channels must be 2-D arrays of one shape, got {sorted(shapes)}")
-    dtype = np.float16 if half else np.float32
-    # OpenEXR.File replaces the dict's values by Channel objects: give it a copy.
-    data = {name: np.ascontiguousarray(a, dtype=dtype) for name, a in channels.items()}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    OpenEXR.File(header, data).write(str(path))
-
-
-def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """All channels of a single-part EXR as float32 [H, W] arrays keyed by full name."""
-    f = OpenEXR.File(str(path), separate_channels=True)
-    return {name: np.asarray(ch.pixels, dtype=np.float32) for name, ch in f.channels().items()}
-
-
-def exr_pixel_types(path: str | os.PathLike) -> dict[str, str]:
-    """Stored sample type per channel ('HALF', 'FLOAT' or 'UINT')."""
-    f = OpenEXR.File(str(path), separate_channels=True)
-    return {name: ch.type().name for name, ch in f.channels().items()}
 
 
 def _smooth(rng: np.random.Generator, h: int, w: int, terms: int = 4) -> np.ndarray:

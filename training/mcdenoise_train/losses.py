@@ -3,8 +3,8 @@
 `smape` is the paper's pixel loss (Lin et al. 2020, eq. 7); `relmse` and `dssim` mirror
 the engine's image metrics (src/metrics.rs: RelMSE with 0.01 in the denominator, SSIM of
 the [0, 1]-clamped channels with an 11-tap Gaussian of σ 1.5 over the valid region), so
-that checkpoint selection ranks networks as `make eval` does. `ms_loss` is the contract-v2
-training objective.
+that checkpoint selection ranks networks as `make eval` does. `log_l1` is the contract-v1
+trainer's (train.py) log-domain L1 term, `ms_loss` the contract-v2 training objective.
 """
 
 from __future__ import annotations
@@ -21,7 +21,22 @@ def smape(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 
 def relmse(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Relative MSE, (x - r)² / (r² + 0.01) averaged; works on numpy arrays as well."""
     return ((x - r) ** 2 / (r * r + 0.01)).mean()
+
+
+def log_l1(x: torch.Tensor, y: torch.Tensor, component: str) -> torch.Tensor:
+    """L1 in a log domain: the specular tensors already are (ln(1 + s)); the diffuse
+    irradiance is taken to ln(1 + max(x, 0)) first.
+
+    SMAPE alone saturates: where the target is ~0 (a diffuse wall has no specular, a
+    shadow little irradiance) and the output is large, |x - y| / (|x| + |y| + eps) is ~1
+    whatever x is, so its gradient vanishes and a kernel that leaks a bright light into
+    its neighbours is never corrected. L1 keeps a constant gradient there.
+    """
+    if component == "diffuse":
+        x, y = torch.log1p(x.clamp_min(0)), torch.log1p(y.clamp_min(0))
+    return (x - y).abs().mean()
 
 
 def _gaussian(device, dtype, radius: int = 5, sigma: float = 1.5) -> torch.Tensor:
@@ -79,4 +94,4 @@ def ms_loss(rec, b: dict, l1_weight: float = 1.0, ssim_weight: float = 0.0, perc
     return loss, parts
 
 
-__all__ = ["dssim", "ms_loss", "relmse", "smape", "ssim_map", "tonemap"]
+__all__ = ["dssim", "log_l1", "ms_loss", "relmse", "smape", "ssim_map", "tonemap"]

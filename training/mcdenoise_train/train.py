@@ -16,7 +16,7 @@ What happens (Lin et al. 2020, Sec. 5; KPCN patch selection):
   inverse transforms, diffuse + specular) and RelMSE / DSSIM against the reference are
   logged; the best checkpoint by validation RelMSE is kept as `best.pt`;
 - `state.pt` holds everything needed to resume (networks, optimizers, step, data
-  sampler seed); `--resume` continues from it;
+  sampler seed); `--resume` continues from it (both files: `checkpoint.py`);
 - `log.jsonl` (training losses), `val.jsonl` and `curves.png` record progress.
 """
 
@@ -33,37 +33,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .checkpoint import save_checkpoint
+from .checkpoint import load_state, save_checkpoint, save_state
 from .contract import COMPONENTS, feature_count
 from .data import PatchSampler, load_frames
+from .files import append_jsonl, open_append, read_jsonl
+from .losses import log_l1, relmse, smape
 from .model import DenoiserNet
 from .recon import apply_kernel, inverse_diffuse, inverse_specular
-
-SMAPE_EPS = 1e-2
-
-
-def smape(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Symmetric mean absolute percentage error (the paper's eq. 7; ε = 1e-2 keeps dark
-    pixels from dominating)."""
-    return (2.0 * (x - y).abs() / (x.abs() + y.abs() + SMAPE_EPS)).mean()
-
-
-def log_l1(x: torch.Tensor, y: torch.Tensor, component: str) -> torch.Tensor:
-    """L1 in a log domain: the specular tensors already are (ln(1 + s)); the diffuse
-    irradiance is taken to ln(1 + max(x, 0)) first.
-
-    SMAPE alone saturates: where the target is ~0 (a diffuse wall has no specular, a
-    shadow little irradiance) and the output is large, |x - y| / (|x| + |y| + eps) is ~1
-    whatever x is, so its gradient vanishes and a kernel that leaks a bright light into
-    its neighbours is never corrected. L1 keeps a constant gradient there.
-    """
-    if component == "diffuse":
-        x, y = torch.log1p(x.clamp_min(0)), torch.log1p(y.clamp_min(0))
-    return (x - y).abs().mean()
-
-
-def relmse(x: np.ndarray, r: np.ndarray) -> float:
-    return float(np.mean((x - r) ** 2 / (r * r + 0.01)))
 
 
 TARGET = {"diffuse": "diffuse_target", "specular": "specular_target"}
@@ -107,7 +83,7 @@ def validate(models, frames) -> dict[str, float]:
     rows = []
     for f in frames:
         out = denoise_frame(models, f.arrays)
-        rows.append((relmse(out, f.arrays["reference"]), relmse(f.arrays["noisy"], f.arrays["reference"])))
+        rows.append((float(relmse(out, f.arrays["reference"])), float(relmse(f.arrays["noisy"], f.arrays["reference"]))))
     for m in models.values():
         m.train()
     return {"relmse": float(np.mean([r[0] for r in rows])), "input_relmse": float(np.mean([r[1] for r in rows]))}
@@ -119,8 +95,8 @@ def plot_curves(out_dir: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    log = [json.loads(l) for l in open(out_dir / "log.jsonl")] if (out_dir / "log.jsonl").exists() else []
-    val = [json.loads(l) for l in open(out_dir / "val.jsonl")] if (out_dir / "val.jsonl").exists() else []
+    log = read_jsonl(out_dir / "log.jsonl", missing_ok=True)
+    val = read_jsonl(out_dir / "val.jsonl", missing_ok=True)
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for c in COMPONENTS:
         steps = [r["step"] for r in log]
@@ -202,7 +178,7 @@ def main(argv=None) -> int:
     step, best, elapsed = 0, math.inf, 0.0
     state_path = out / "state.pt"
     if a.resume and state_path.exists():
-        st = torch.load(state_path, map_location="cpu", weights_only=False)
+        st = load_state(state_path)
         for c in COMPONENTS:
             models[c].load_state_dict(st["models"][c])
             opts[c].load_state_dict(st["opts"][c])
@@ -212,7 +188,7 @@ def main(argv=None) -> int:
 
     info = {c: models[c].description() for c in COMPONENTS}
     print(f"training {a.variant}: {len(train)} train / {len(val)} val frames; {info['diffuse']}", file=sys.stderr)
-    log = open(out / "log.jsonl", "a")
+    log = open_append(out / "log.jsonl")
     t0 = time.time() - elapsed
     while step < a.steps:
         rng = np.random.default_rng([a.seed, step])
@@ -236,16 +212,14 @@ def main(argv=None) -> int:
         if step % a.val_every == 0 or step == a.steps:
             v = validate(models, val) if val else {"relmse": float(row["diffuse_loss"] + row["specular_loss"]), "input_relmse": float("nan")}
             v.update(step=step, time=time.time() - t0)
-            with open(out / "val.jsonl", "a") as f:
-                f.write(json.dumps(v) + "\n")
+            append_jsonl(out / "val.jsonl", v)
             print(f"validation at {step}: RelMSE {v['relmse']:.5f} (input {v['input_relmse']:.5f})", file=sys.stderr, flush=True)
             if v["relmse"] < best:
                 best = v["relmse"]
                 save_checkpoint(out / "best.pt", models, step=step, val=v, train_config=vars(a))
-            torch.save({"models": {c: models[c].state_dict() for c in COMPONENTS},
-                        "opts": {c: opts[c].state_dict() for c in COMPONENTS},
-                        "step": step, "best": best, "elapsed": time.time() - t0}, str(state_path) + ".part")
-            os.replace(str(state_path) + ".part", state_path)
+            save_state(state_path, models={c: models[c].state_dict() for c in COMPONENTS},
+                       opts={c: opts[c].state_dict() for c in COMPONENTS},
+                       step=step, best=best, elapsed=time.time() - t0)
             log.flush()
             plot_curves(out)
     log.close()

@@ -21,9 +21,10 @@ Recipe:
   2020), plus L1 of the final color after the transfer function log(1 + x) (robust to HDR
   outliers), plus `--perceptual W` × the VGG-16 feature loss when the weights are present.
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine), bf16 autocast on CUDA.
-- **Checkpoints** (`runs` directory): `best.pt` (network weights and config, selected on the
-  validation frames by mean log RelMSE + mean log DSSIM), `state.pt` (network, optimizer,
-  scheduler, step: `--resume` continues), `log.jsonl`, `val.jsonl`.
+- **Checkpoints** (`runs` directory, `checkpoint.py`): `best.pt` (network weights and
+  config, selected on the validation frames by mean log RelMSE + mean log DSSIM),
+  `state.pt` (network, optimizer, scheduler, step: `--resume` continues), `log.jsonl`,
+  `val.jsonl`.
 """
 
 from __future__ import annotations
@@ -42,10 +43,11 @@ import torch
 from torch import nn
 
 from . import losses
+from .checkpoint import load_checkpoint, load_state, save_checkpoint, save_msnet, save_state
 from .contract import FEATURES_FULL, NOCOV_INDICES
-from .data import read_manifest
-from .frames import read_exr
-from .checkpoint import save_checkpoint
+from .data import manifest_frames
+from .exr import read_exr
+from .files import append_jsonl, atomic_path, open_append
 from .model import DenoiserNet, paper_config
 from .msnet import MSNet, add_shape_arguments, from_arguments, pad_to_multiple
 from .preprocess import ALBEDO, DIFFUSE, SPECULAR, VAR, preprocess, raw_from_channels, targets
@@ -72,9 +74,8 @@ def load_raw(record: dict, cache: Path | None) -> dict[str, np.ndarray | float]:
     out = {"raw": raw, "ref": np.nan_to_num(refs), "maxima": np.array([dmax, cmax], np.float32)}
     if cache is not None:
         cache.mkdir(parents=True, exist_ok=True)
-        tmp = cache / f"{p.stem}.{os.getpid()}.part.npz"
-        np.savez(tmp, **out)
-        os.replace(tmp, p)
+        with atomic_path(p) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **out)
     return out
 
 
@@ -85,7 +86,7 @@ class FrameSet:
                  cache: bool = False):
         recs = []
         for d in dirs:
-            recs += [(r, Path(d)) for r in read_manifest(d) if r.get("split", "train") == split]
+            recs += [(r, Path(d)) for r in manifest_frames(d) if r.get("split", "train") == split]
         recs = recs[:limit]
         by_shape: dict[tuple, list] = {}
         self.names, self.spp, self.scenes = [], [], []
@@ -256,7 +257,6 @@ def validate(net: MSNet, val: FrameSet, zero_cov: bool = False) -> dict[str, flo
 
 def export_lin2020(checkpoint: Path, models: Path) -> None:
     """The paper's pair as contract-v1 files in `models/lin2020/`, named variant `lin2020`."""
-    from .checkpoint import load_checkpoint
     from .export import export_onnx
 
     nets, _ = load_checkpoint(checkpoint)
@@ -361,7 +361,7 @@ def main(argv=None) -> int:
     step, best, elapsed, fitted = 0, math.inf, 0.0, False
     state_path = out / "state.pt"
     if a.resume and state_path.exists():
-        st = torch.load(state_path, map_location=dev, weights_only=False)
+        st = load_state(state_path, map_location=dev)
         net.load_state_dict(st["model"])
         opt.load_state_dict(st["opt"])
         step, best, elapsed = st["step"], st["best"], st["elapsed"]
@@ -371,15 +371,13 @@ def main(argv=None) -> int:
         print(f"resumed at step {step}", file=sys.stderr)
     (out / "config.json").write_text(json.dumps(vars(a), indent=2))
     print(f"training: {net.description()}; {net.flops_per_pixel() / 1e6:.3f} MFLOP/px", file=sys.stderr, flush=True)
-    log = open(out / "log.jsonl", "a")
+    log = open_append(out / "log.jsonl")
     t0 = time.time() - elapsed
     g = torch.Generator().manual_seed(a.seed * 1_000_003 + step)
 
-    def save_state():
-        torch.save({"model": net.state_dict(), "opt": opt.state_dict(), "fitted": fitted,
-                    "step": step, "steps": a.steps, "best": best, "elapsed": time.time() - t0},
-                   str(state_path) + ".part")
-        os.replace(str(state_path) + ".part", state_path)
+    def save_resume():
+        save_state(state_path, model=net.state_dict(), opt=opt.state_dict(), fitted=fitted,
+                   step=step, steps=a.steps, best=best, elapsed=time.time() - t0)
 
     stop = False
     t_fit = time.time()
@@ -416,8 +414,7 @@ def main(argv=None) -> int:
             if len(val):
                 v["nocov"] = validate(net, val, zero_cov=True)
             v.update(step=step, time=time.time() - t0)
-            with open(out / "val.jsonl", "a") as f:
-                f.write(json.dumps(v) + "\n")
+            append_jsonl(out / "val.jsonl", v)
             print(f"validation at {step}: RelMSE {v['relmse']:.5f} DSSIM {v.get('dssim', float('nan')):.4f} "
                   f"(input {v.get('input_relmse', float('nan')):.4f})", file=sys.stderr, flush=True)
             if v["score"] < best:
@@ -426,9 +423,8 @@ def main(argv=None) -> int:
                     save_checkpoint(out / "best.pt", {"diffuse": net.diffuse, "specular": net.specular},
                                     step=step, val=v, train_config=vars(a))
                 else:
-                    torch.save({"config": net.config, "state_dict": {k: t.detach().cpu() for k, t in net.state_dict().items()},
-                            "step": step, "val": v}, out / "best.pt")
-            save_state()
+                    save_msnet(out / "best.pt", net, step=step, val=v)
+            save_resume()
     log.close()
     if a.export and a.arch == "lin2020":
         export_lin2020(out / "best.pt", Path(a.export))

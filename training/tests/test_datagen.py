@@ -32,7 +32,9 @@ mi = set_variant("llvm_ad_rgb")
 import drjit as dr  # noqa: E402
 
 from mcdenoise_train.datagen import covariance as cv  # noqa: E402
-from mcdenoise_train.datagen import cycles, dataset, exr_io, render, scenes  # noqa: E402
+from mcdenoise_train import exr  # noqa: E402
+from mcdenoise_train.datagen import cycles, dataset, render, scenes  # noqa: E402
+from mcdenoise_train.files import read_manifest  # noqa: E402
 from mcdenoise_train.datagen.integrator import LUM, Options  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -66,16 +68,16 @@ def shadow():
 
 def test_all_channels_written(cornell, tmp_path):
     ch, meta = render.frame_channels(cornell[0])
-    exr_io.write_frame(tmp_path / "f.exr", ch, meta)
-    back, meta2 = exr_io.read_frame(tmp_path / "f.exr")
+    exr.write_frame(tmp_path / "f.exr", ch, meta)
+    back, meta2 = exr.read_frame(tmp_path / "f.exr")
     assert set(back) == LAYOUT
-    assert set(exr_io.CHANNELS) == LAYOUT
+    assert set(exr.CHANNELS) == LAYOUT
     for k, v in back.items():
         assert v.shape == (48, 48) and v.dtype == np.float32, k
         assert np.isfinite(v).all(), k
     assert meta2["spp"] == 16
     assert all(np.all(back[f"{b}Variance.Z"] >= 0) for b in ("color", "diffuse", "specular", "albedo", "normal", "depth", "covariance"))
-    assert exr_io.is_complete(tmp_path / "f.exr")
+    assert exr.is_complete(tmp_path / "f.exr")
 
 
 def test_diffuse_plus_specular_is_color(cornell):
@@ -195,13 +197,13 @@ def test_dataset_cli_manifest_split_resume(tmp_path):
     args = ["--out", str(out), "--scenes", "2", "--size", "16", "--spp", "1,2,4", "--ref-spp", "8",
             "--val-fraction", "0.5", "--no-progress", "--families", "cornell", "--test-scenes", "1"]
     assert dataset.main(args) == 0
-    recs = dataset.read_manifest(out / "manifest.jsonl")
+    recs = read_manifest(out / "manifest.jsonl")
     assert [r["split"] for r in recs] == ["train", "val"]
     for r in recs:
         assert r["seed"] < dataset.TEST_SEED_BASE and (r["renderer"], r["family"]) == ("mitsuba", "cornell")
         assert set(r["frames"]) == {"1", "2", "4", "ref"}
         for k, f in r["frames"].items():
-            assert exr_io.is_complete(out / f["path"], exr_io.CHANNELS if k != "ref" else exr_io.CHANNELS_NOCOV)
+            assert exr.is_complete(out / f["path"], exr.CHANNELS if k != "ref" else exr.CHANNELS_NOCOV)
             assert f["seed"] == r["seed"] and f["spp"] == (8 if k == "ref" else int(k))
         # the reference's noise floor is recorded and lies below every input's error
         assert 0 < r["frames"]["ref"]["noise_floor"] < min(r["frames"][s]["rel_error"] for s in ("1", "2", "4"))
@@ -210,7 +212,7 @@ def test_dataset_cli_manifest_split_resume(tmp_path):
         assert all(np.isfinite(v) and v > 0 for v in r["ref_variance_ratio"]["1"].values())
         assert r["timings"]["noisy"]["seconds"] > 0 and r["timings"]["ref"]["seconds"] > 0
     # the test set: its own directory, disjoint seeds, split "test"
-    (t,) = dataset.read_manifest(test_out / "manifest.jsonl")
+    (t,) = read_manifest(test_out / "manifest.jsonl")
     assert t["split"] == "test" and t["seed"] >= dataset.TEST_SEED_BASE
     assert (test_out / t["frames"]["ref"]["path"]).is_file() and not list(out.glob("test"))
     summary = json.loads((out / "summary.json").read_text())
@@ -234,7 +236,7 @@ def test_dataset_workers_share_one_manifest(tmp_path):
     args = ["--out", str(tmp_path), "--scenes", "3", "--size", "12", "--spp", "2,4", "--ref-spp", "4",
             "--no-progress", "--families", "cornell", "--workers", "2"]
     assert dataset.main(args) == 0
-    recs = dataset.read_manifest(tmp_path / "manifest.jsonl")
+    recs = read_manifest(tmp_path / "manifest.jsonl")
     assert sorted(r["index"] for r in recs) == [0, 1, 2] and all(r["complete"] for r in recs)
     assert sorted(r["worker"] for r in recs) == [0, 0, 1]  # scene i on worker i mod 2
     assert len((tmp_path / "manifest.jsonl").read_text().splitlines()) == 3
@@ -258,12 +260,12 @@ def test_half_precision_frames(cornell, tmp_path):
     import OpenEXR
 
     ch, meta = render.frame_channels(cornell[0])
-    exr_io.write_frame(tmp_path / "h.exr", ch, meta, precision="half")
+    exr.write_frame(tmp_path / "h.exr", ch, meta, precision="half")
     with OpenEXR.File(str(tmp_path / "h.exr"), separate_channels=True) as f:
         types = {k: c.pixels.dtype for k, c in f.channels().items()}
         assert f.header()["compression"] == OpenEXR.PXR24_COMPRESSION
     assert all(t == (np.float32 if "Variance" in k else np.float16) for k, t in types.items()), types
-    back, _ = exr_io.read_frame(tmp_path / "h.exr")
+    back, _ = exr.read_frame(tmp_path / "h.exr")
     for k, v in ch.items():
         np.testing.assert_allclose(back[k], v, rtol=1e-3, atol=1e-4 if "Variance" not in k else 0, err_msg=k)
 
@@ -285,7 +287,7 @@ def test_committed_fixture_frames():
     assert {"cornell-spp8.exr", "cornell-ref.exr", "cornell-nocov-spp8.exr", "caustic-spp8.exr", "caustic-ref.exr"} <= names
     assert sum(f.stat().st_size for f in files) < 5 * 2**20
     for f in files:
-        ch, _ = exr_io.read_frame(f)
+        ch, _ = exr.read_frame(f)
         want = LAYOUT - {"covariance", "covarianceVariance.Z"} if "nocov" in f.name else LAYOUT
         assert set(ch) == want, f.name
 
@@ -302,7 +304,7 @@ def cycles_frames():
 @needs_bpy
 def test_cycles_frame_channels_and_split(cycles_frames, tmp_path):
     ch, meta = cycles_frames[16]
-    assert set(ch) == set(exr_io.CHANNELS_NOCOV) and meta == {"spp": 16, "renders": 8}
+    assert set(ch) == set(exr.CHANNELS_NOCOV) and meta == {"spp": 16, "renders": 8}
     assert all(np.isfinite(v).all() and v.shape == (24, 24) for v in ch.values())
     for c in "RGB":  # specular is built from the glossy/transmission/emission/environment passes
         split = ch[f"diffuse.{c}"] + ch[f"specular.{c}"]
@@ -333,7 +335,7 @@ def test_engine_reads_cycles_frames_with_every_variance(cycles_frames, tmp_path)
     if not Path(binary).is_file() or not os.environ.get("ORT_DYLIB_PATH"):
         pytest.skip("needs the engine (make build) and ORT_DYLIB_PATH")
     ch, meta = cycles_frames[16]
-    exr_io.write_frame(tmp_path / "c.exr", ch, meta, precision="half")
+    exr.write_frame(tmp_path / "c.exr", ch, meta, precision="half")
     r = subprocess.run([binary, "run", str(tmp_path / "c.exr"), "-o", str(tmp_path / "out.exr"),
                         "--models", str(REPO / "models")], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
@@ -346,13 +348,13 @@ def test_dataset_cli_both_renderers(tmp_path):
     args = ["--out", str(tmp_path), "--scenes", "1", "--size", "12", "--spp", "2,4", "--ref-spp", "16",
             "--no-progress", "--families", "cornell", "--renderer", "both"]
     assert dataset.main(args) == 0
-    recs = {r["renderer"]: r for r in dataset.read_manifest(tmp_path / "manifest.jsonl")}
+    recs = {r["renderer"]: r for r in read_manifest(tmp_path / "manifest.jsonl")}
     assert set(recs) == {"mitsuba", "cycles"}
     assert recs["cycles"]["scene"] == recs["mitsuba"]["scene"] + "-cycles"
     assert recs["cycles"]["split"] == recs["mitsuba"]["split"] and recs["cycles"]["complete"]
     for k, f in recs["cycles"]["frames"].items():
-        ch, meta = exr_io.read_frame(tmp_path / f["path"])
-        assert set(ch) == set(exr_io.CHANNELS_NOCOV) and f["renderer"] == "cycles"
+        ch, meta = exr.read_frame(tmp_path / f["path"])
+        assert set(ch) == set(exr.CHANNELS_NOCOV) and f["renderer"] == "cycles"
         assert meta["spp"] == (16 if k == "ref" else int(k))
     assert dataset.main(args) == 0  # resumes: both complete
     assert json.loads((tmp_path / "summary.json").read_text())["skipped"] == 2
@@ -367,7 +369,7 @@ def test_engine_reads_half_frames(cornell, tmp_path):
         pytest.skip("needs the engine (make build)")
     for name, m in (("noisy", cornell[0]), ("ref", cornell[1])):
         ch, meta = render.frame_channels(m)
-        exr_io.write_frame(tmp_path / f"{name}.exr", ch, meta, precision="half")
+        exr.write_frame(tmp_path / f"{name}.exr", ch, meta, precision="half")
     r = subprocess.run([binary, "preprocess", str(tmp_path / "noisy.exr"), "--reference", str(tmp_path / "ref.exr"),
                         "-o", str(tmp_path / "p.npz")], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from mcdenoise_train.frames import exr_pixel_types, read_exr, synthetic_frame, write_exr
+from mcdenoise_train.exr import exr_pixel_types, read_exr, write_exr
+from mcdenoise_train.frames import synthetic_frame
 
 LAYOUT = {
     "diffuse.R", "diffuse.G", "diffuse.B", "diffuseVariance.Z",

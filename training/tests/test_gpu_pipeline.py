@@ -53,7 +53,7 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
     assert all(p.stat().st_size <= 15_000_000 for p in out.glob("test-data.tar.part-*"))
     dest = tmp_path / "data-test"
     _run(env, "unpack-test", str(out), str(dest))
-    from mcdenoise_train.data import read_manifest
+    from mcdenoise_train.data import manifest_frames
 
-    records = read_manifest(dest)
+    records = manifest_frames(dest)
     assert records and all(r["split"] == "test" and Path(r["noisy"]).is_file() for r in records)

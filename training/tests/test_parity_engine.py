@@ -40,7 +40,8 @@ import torch
 
 from mcdenoise_train.contract import COMPONENTS, EPS, NOCOV_INDICES
 from mcdenoise_train.export import export_onnx, random_models, scale_head
-from mcdenoise_train.frames import exr_pixel_types, read_exr, synthetic_frame, write_exr
+from mcdenoise_train.exr import exr_pixel_types, read_exr, write_exr
+from mcdenoise_train.frames import synthetic_frame
 from mcdenoise_train.recon import inverse_diffuse, inverse_specular, reconstruct
 
 H, W = 40, 48

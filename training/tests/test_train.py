@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from mcdenoise_train import data, train
-from mcdenoise_train.frames import synthetic_frame, write_exr
+from mcdenoise_train.exr import write_exr
+from mcdenoise_train.frames import synthetic_frame
 
 BIN = os.environ.get("MCDENOISE_BIN", "")
 needs_engine = pytest.mark.skipif(
@@ -128,7 +129,7 @@ def test_evaluate_reports_the_outlier_check(tmp_path):
     from pathlib import Path
 
     from mcdenoise_train import evaluate
-    from mcdenoise_train.frames import read_exr
+    from mcdenoise_train.exr import read_exr
 
     root = make_dataset(tmp_path / "d")
     tiny = Path(__file__).resolve().parents[2] / "tests/fixtures/models/tiny"

@@ -11,7 +11,8 @@ import torch
 
 from mcdenoise_train import train_ms
 from mcdenoise_train.export_ms import read_metadata_v2
-from mcdenoise_train.frames import read_exr, synthetic_frame, write_exr
+from mcdenoise_train.exr import read_exr, write_exr
+from mcdenoise_train.frames import synthetic_frame
 from mcdenoise_train.preprocess import DIFFUSE, RAW, SPECULAR, VAR, preprocess, raw_from_channels, targets
 
 from test_train import make_dataset, needs_engine

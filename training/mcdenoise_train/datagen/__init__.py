@@ -3,7 +3,8 @@ and the same scenes with Blender Cycles.
 
 The generator writes frames in the layout of docs/frame-layout.md: total colour, its
 diffuse/specular split, albedo, normal, depth, the light transport covariance feature
-and the variance of every buffer. docs/training-data.md describes the method.
+and the variance of every buffer (written by `mcdenoise_train.exr`). docs/training-data.md
+describes the method.
 
 # Layout
 
@@ -14,7 +15,6 @@ and the variance of every buffer. docs/training-data.md describes the method.
 - `covariance` -- 4x4 light-field covariance operators (Belcour et al.) on 2x2 blocks
 - `integrator` -- the path tracer: split radiance, features, per-vertex covariance records
 - `render`     -- sample accumulation, variance of the mean, the spp ladder, frame assembly
-- `exr_io`     -- atomic EXR writing/reading in our channel layout
 - `dataset`    -- the N-scene driver (CLI, workers, manifest, resume, train/validation split, test set)
 - `cycles`     -- Cycles frames: runs `cycles_worker` in bpy's environment, assembles buffers and variances
 - `cycles_worker` -- builds a spec through bpy and renders it (runs inside the bpy environment)

@@ -78,15 +78,14 @@ def plan(spps, ref_spp, seed: int, streams: int = STREAMS) -> tuple[list[dict], 
 
 def read_passes(path) -> dict:
     """Channels of a Cycles multi-layer EXR by `<pass>.<channel>` (view layer dropped)."""
-    import OpenEXR
+    from ..exr import read_parts  # OpenEXR only where frames are read, not to import this module
 
     out = {}
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        for part in f.parts:
-            for name, ch in part.channels.items():
-                bits = name.rsplit(".", 2)
-                key = ".".join(bits[-2:]) if len(bits) >= 2 else name
-                out.setdefault(key, np.asarray(ch.pixels, np.float32))
+    for part in read_parts(path):
+        for name, pixels in part.items():
+            bits = name.rsplit(".", 2)
+            key = ".".join(bits[-2:]) if len(bits) >= 2 else name
+            out.setdefault(key, pixels)
     return out
 
 

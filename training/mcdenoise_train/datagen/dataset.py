@@ -33,14 +33,14 @@ Resuming: every frame is written atomically (temporary file + rename) and a scen
 frames all exist with every channel (and that has a manifest record) is skipped, so an
 interrupted run continues where it stopped; frames are deterministic functions of
 (seed, spp, size). Records are appended to the manifest under an exclusive lock, one line
-per write, so workers share it safely. `--max-minutes T` stops starting new scenes after
+per write, so workers share it safely (`files.append_manifest`; a line cut short by an
+interruption is dropped before the next append). `--max-minutes T` stops starting new scenes after
 T minutes (test scenes go first), for runs on a machine lent for a fixed time.
 """
 
 from __future__ import annotations
 
 import argparse
-import fcntl
 import json
 import math
 import os
@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..files import append_manifest, read_manifest
 from .backend import set_variant
 
 #: Test scenes take seeds from here on; training/validation seeds must stay below.
@@ -135,14 +136,15 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
                  progress=None, covariance=True, root=None, precision="half"):
     """Render the frames of one scene that are missing; returns the manifest record, whose
     paths are relative to `root` (the data set directory) when given."""
-    from . import exr_io, render, scenes
+    from .. import exr
+    from . import render, scenes
     from .integrator import Options
 
     def rel(p):
         return os.path.relpath(p, root) if root is not None else str(p)
 
-    expect = exr_io.CHANNELS if covariance else exr_io.CHANNELS_NOCOV
-    expect_ref = exr_io.CHANNELS_NOCOV
+    expect = exr.CHANNELS if covariance else exr.CHANNELS_NOCOV
+    expect_ref = exr.CHANNELS_NOCOV
     t0 = time.perf_counter()
     scene = scenes.build(spec, width, height)
     t_build = time.perf_counter() - t0
@@ -163,9 +165,9 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
                 "seed": spec["seed"], "spp": int(spp)}
 
     if frames in ("all", "noisy"):
-        if all(exr_io.is_complete(out_paths[s], expect) for s in spps):
+        if all(exr.is_complete(out_paths[s], expect) for s in spps):
             for s in spps:
-                ch, meta = exr_io.read_frame(out_paths[s])
+                ch, meta = exr.read_frame(out_paths[s])
                 noisy_ch[s] = {k: ch[k] for k in ("R", "G", "B", "colorVariance.Z")}
                 rec["frames"][str(s)] = noisy_entry(s, out_paths[s], meta.get("seconds"))
             if progress:
@@ -177,7 +179,7 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
                 ch, meta = render.frame_channels(m, covariance)
                 meta.update(base, seconds=round(seconds, 3), seed_first_pass=_noisy_seed(spec["seed"]),
                             launch="ladder")
-                exr_io.write_frame(out_paths[spp], ch, meta, precision=precision)
+                exr.write_frame(out_paths[spp], ch, meta, precision=precision)
                 noisy_ch[spp] = {k: ch[k] for k in ("R", "G", "B", "colorVariance.Z")}
                 rec["frames"][str(spp)] = noisy_entry(spp, out_paths[spp], round(seconds, 3))
                 t_write += time.perf_counter() - tw
@@ -187,15 +189,15 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
             rec["timings"]["noisy"] = _stats_dict(st)
     else:  # reference-only run: describe the noisy frames already on disk
         for s in spps:
-            if exr_io.is_complete(out_paths[s], expect):
-                ch, meta = exr_io.read_frame(out_paths[s])
+            if exr.is_complete(out_paths[s], expect):
+                ch, meta = exr.read_frame(out_paths[s])
                 noisy_ch[s] = {k: ch[k] for k in ("R", "G", "B", "colorVariance.Z")}
                 rec["frames"][str(s)] = noisy_entry(s, out_paths[s], meta.get("seconds"))
     ref_ch = None
     if frames in ("all", "ref") and ref_spp > 0:
         p = out_paths["ref"]
-        if exr_io.is_complete(p, expect_ref):
-            ref_ch, meta = exr_io.read_frame(p)
+        if exr.is_complete(p, expect_ref):
+            ref_ch, meta = exr.read_frame(p)
             secs = meta.get("seconds")
             if progress:
                 progress(ref_spp)
@@ -208,12 +210,12 @@ def render_scene(spec, width, height, spps, ref_spp, out_paths, opts, frames="al
             tw = time.perf_counter()
             ref_ch, meta = render.frame_channels(m, False)
             meta.update(base, seconds=round(secs, 3), seed_first_pass=_ref_seed(spec["seed"]), reference=True)
-            exr_io.write_frame(p, ref_ch, meta, precision=precision)
+            exr.write_frame(p, ref_ch, meta, precision=precision)
             t_write += time.perf_counter() - tw
         rec["frames"]["ref"] = {"path": rel(p), "seconds": round(float(secs), 3) if secs is not None else None,
                                 "renderer": "mitsuba", "family": spec["kind"], "seed": spec["seed"], "spp": ref_spp}
-    elif ref_spp > 0 and exr_io.is_complete(out_paths["ref"], expect_ref):  # noisy-only run
-        ref_ch, meta = exr_io.read_frame(out_paths["ref"])
+    elif ref_spp > 0 and exr.is_complete(out_paths["ref"], expect_ref):  # noisy-only run
+        ref_ch, meta = exr.read_frame(out_paths["ref"])
         rec["frames"]["ref"] = {"path": rel(out_paths["ref"]), "seconds": meta.get("seconds"),
                                 "renderer": "mitsuba", "family": spec["kind"], "seed": spec["seed"], "spp": ref_spp}
     if ref_ch is not None and noisy_ch:
@@ -234,7 +236,8 @@ def render_scene_cycles(spec, width, height, spps, ref_spp, out_paths, max_depth
                         precision="half", streams=None):
     """Render a scene's frames with Blender Cycles (all of them: Cycles frames are made in
     one Blender session); returns the manifest record (see cycles.py)."""
-    from . import cycles, exr_io
+    from .. import exr
+    from . import cycles
 
     def rel(p):
         return os.path.relpath(p, root) if root is not None else str(p)
@@ -252,7 +255,7 @@ def render_scene_cycles(spec, width, height, spps, ref_spp, out_paths, max_depth
     tw = time.perf_counter()
     for key, (ch, meta) in res.items():
         meta.update(base, seconds=round(secs, 3), reference=key == "ref")
-        exr_io.write_frame(out_paths[key], ch, meta, precision=precision)
+        exr.write_frame(out_paths[key], ch, meta, precision=precision)
         rec["frames"][str(key)] = {"path": rel(out_paths[key]), "seconds": round(secs, 3), "renderer": "cycles",
                                    "family": spec["kind"], "seed": spec["seed"],
                                    "spp": ref_spp if key == "ref" else int(key), "renders": meta["renders"]}
@@ -276,32 +279,6 @@ def _mi_version():
     import mitsuba
 
     return mitsuba.__version__
-
-
-def read_manifest(path: Path) -> list[dict]:
-    out = []
-    if path.exists():
-        for line in path.read_text().splitlines():
-            try:
-                out.append(json.loads(line))
-            except json.JSONDecodeError:
-                continue  # a line cut short by an interruption
-    return out
-
-
-def append_manifest(path: Path, record: dict) -> None:
-    """Append one record as one line, under an exclusive lock (several workers append)."""
-    line = (json.dumps(record, sort_keys=True) + "\n").encode()
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        try:
-            os.write(fd, line)
-            os.fsync(fd)
-        finally:
-            fcntl.flock(fd, fcntl.LOCK_UN)
-    finally:
-        os.close(fd)
 
 
 def parse_args(argv=None):
@@ -385,7 +362,7 @@ def _spec_of(seed: int, families):
 
 def _check_dir(out: Path, test: bool) -> None:
     """A data set directory holds either the test split or train/val, never both."""
-    recs = read_manifest(out / "manifest.jsonl")
+    recs = read_manifest(out / "manifest.jsonl", missing_ok=True)
     bad = [r["scene"] for r in recs if (r.get("split") == "test") != test]
     if bad:
         raise SystemExit(f"{out}: holds {'training/validation' if test else 'test'} scenes ({bad[0]}, ...); "
@@ -398,7 +375,7 @@ def _work(worker: int, args, progress_q=None) -> dict:
     import drjit as dr
     import mitsuba as mi
 
-    from . import exr_io
+    from .. import exr
     from .integrator import Options
 
     if args.workers > 1 and mi.variant().startswith("llvm"):
@@ -407,12 +384,12 @@ def _work(worker: int, args, progress_q=None) -> dict:
     families = args.families.split(",") if args.families else None
     covariance = not args.no_covariance
     opts = Options(max_depth=args.max_depth, covariance=covariance)
-    expect = exr_io.CHANNELS if covariance else exr_io.CHANNELS_NOCOV
+    expect = exr.CHANNELS if covariance else exr.CHANNELS_NOCOV
     deadline = args.deadline
     done = {}
     for d in {args.out, args.test_out} - {None}:
         done[d] = {(r["scene"], r["width"], r["height"], tuple(r["spp"]), r["ref_spp"])
-                   for r in read_manifest(d / "manifest.jsonl") if r.get("complete")}
+                   for r in read_manifest(d / "manifest.jsonl", missing_ok=True) if r.get("complete")}
     per_scene = (max(args.spps) if args.frames != "ref" else 0) + (args.ref_spp if args.frames != "noisy" else 0)
     tot = {"rendered": 0, "skipped": 0, "not_started": 0, "frames": 0, "records": []}
     for j, (out, split, i, seed, renderer) in enumerate(_jobs(args)):
@@ -424,13 +401,13 @@ def _work(worker: int, args, progress_q=None) -> dict:
         spec = _spec_of(seed, families)
         if renderer == "cycles":
             spec["name"] += "-cycles"
-        expect = exr_io.CHANNELS if covariance and renderer == "mitsuba" else exr_io.CHANNELS_NOCOV
+        expect = exr.CHANNELS if covariance and renderer == "mitsuba" else exr.CHANNELS_NOCOV
         paths = frame_paths(out, spec["name"], split, args.spps, args.ref_spp > 0)
         key = (spec["name"], width, height, tuple(args.spps), args.ref_spp)
         wanted = [(paths[s], expect) for s in args.spps] if args.frames != "ref" else []
         if args.frames != "noisy" and args.ref_spp > 0:
-            wanted.append((paths["ref"], exr_io.CHANNELS_NOCOV))
-        if key in done[out] and all(exr_io.is_complete(p, e) for p, e in wanted):
+            wanted.append((paths["ref"], exr.CHANNELS_NOCOV))
+        if key in done[out] and all(exr.is_complete(p, e) for p, e in wanted):
             tot["skipped"] += 1
             if progress_q is not None:
                 progress_q.put(("spp", per_scene, None))
@@ -447,7 +424,7 @@ def _work(worker: int, args, progress_q=None) -> dict:
             rec = render_scene(spec, width, height, args.spps, args.ref_spp, paths, opts, args.frames,
                                args.max_lanes, progress=step, covariance=covariance, root=out,
                                precision=args.precision)
-        complete = all(exr_io.is_complete(p_, expect if k != "ref" else exr_io.CHANNELS_NOCOV)
+        complete = all(exr.is_complete(p_, expect if k != "ref" else exr.CHANNELS_NOCOV)
                        for k, p_ in paths.items())
         rec.update(split=split, index=i, spec=os.path.relpath(spec_path, out), variant=mi.variant(),
                    frames_rendered=args.frames, precision=args.precision, worker=worker, complete=complete)

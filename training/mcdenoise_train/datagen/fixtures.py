@@ -45,7 +45,8 @@ def main(argv=None) -> int:
     p.add_argument("--variant", default=None)
     args = p.parse_args(argv)
     set_variant(args.variant)
-    from . import exr_io, render, scenes
+    from .. import exr
+    from . import render, scenes
     from .integrator import Options
 
     opts = Options()
@@ -56,14 +57,14 @@ def main(argv=None) -> int:
         base = {"scene": spec["name"], "width": w, "height": h, "fixture": name}
         m = render.render(scene, w, h, spp, seed << 12, pa, opts)
         ch, meta = render.frame_channels(m)
-        exr_io.write_frame(args.out / f"{name}-spp{spp}.exr", ch, {**meta, **base})
+        exr.write_frame(args.out / f"{name}-spp{spp}.exr", ch, {**meta, **base})
         if name == "cornell":
             nocov = {k: v for k, v in ch.items() if not k.startswith("covariance")}
             meta_nc = {k: v for k, v in meta.items() if k != "covariance_scale"}
-            exr_io.write_frame(args.out / f"{name}-nocov-spp{spp}.exr", nocov, {**meta_nc, **base})
+            exr.write_frame(args.out / f"{name}-nocov-spp{spp}.exr", nocov, {**meta_nc, **base})
         r = render.render(scene, w, h, ref_spp, (seed << 12) + 2048, pa, opts)
         ch, meta = render.frame_channels(r)
-        exr_io.write_frame(args.out / f"{name}-ref.exr", ch, {**meta, **base, "reference": True})
+        exr.write_frame(args.out / f"{name}-ref.exr", ch, {**meta, **base, "reference": True})
         print(f"{name}: {w}x{h}, {spp} spp + {ref_spp}-spp reference", file=sys.stderr)
     return 0
 
