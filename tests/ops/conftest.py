@@ -48,8 +48,9 @@ def free_port() -> int:
 
 
 class Daemon:
-    def __init__(self, tmp: Path, *extra: str, token: str | None = TOKEN, wait: bool = True):
+    def __init__(self, tmp: Path, *extra: str, token: str | None = TOKEN, wait: bool = True, data: Path | None = None):
         tmp.mkdir(parents=True, exist_ok=True)
+        self.data = data or tmp / "data"
         self.http_port, self.grpc_port = free_port(), free_port()
         self.url = f"http://127.0.0.1:{self.http_port}"
         self.token = token
@@ -57,7 +58,7 @@ class Daemon:
         env = dict(os.environ, ORT_DYLIB_PATH=ort_library())
         env.pop("MCDENOISE_AUTH_TOKENS", None)
         args = [str(mcdenoise_bin()), "serve", "--http", f"127.0.0.1:{self.http_port}",
-                "--grpc", f"127.0.0.1:{self.grpc_port}", "--data-dir", str(tmp / "data"),
+                "--grpc", f"127.0.0.1:{self.grpc_port}", "--data-dir", str(self.data),
                 "--models", str(ROOT / "models"), "--workers", "1", "--threads-per-worker", "1",
                 "--tile", "32", "--log", "warn", *extra]
         if token:
