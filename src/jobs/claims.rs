@@ -261,6 +261,10 @@ impl WorkerLink {
             .and_then(|json| crate::atomic::write(&service.inner.store.summary_path(id), &json))
             .and_then(|()| crate::atomic::write(&service.inner.store.result_path(id), &out.encoded));
         if let Err(e) = written {
+            if !service.lock().jobs.contains_key(id) {
+                // Deleted while it ran (its directory went with it): not a storage fault.
+                return Ok(None);
+            }
             let e = crate::error::Error::storage("cannot write the result", &e);
             if e.storage_kind().is_some() {
                 service.storage_failed(&e);

@@ -493,5 +493,6 @@ async fn deleting_a_running_job_removes_it_and_its_files_when_the_run_ends() {
     h.gate.open();
     h.until_state(&next, JobState::Succeeded).await;
     assert!(!h.dir.path().join("jobs").join(&id).exists());
+    assert_eq!(h.service.storage_problem(), None, "a deleted job's missing directory is not a storage fault");
     h.stop();
 }
