@@ -213,35 +213,38 @@ async fn run(
     }
 }
 
-/// Checks the data directory periodically (see `jobs::health`); the first check runs at
-/// once.
-async fn storage_checks(service: JobService, every: Duration, stop: CancellationToken) {
+/// Runs `task` every `every` (the first time at once) until `stop`.
+async fn periodically<F: std::future::Future<Output = ()>>(
+    every: Duration,
+    stop: CancellationToken,
+    mut task: impl FnMut() -> F,
+) {
     let mut tick = tokio::time::interval(every);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
             _ = stop.cancelled() => break,
-            _ = tick.tick() => {
-                service.check_storage().await;
-            }
+            _ = tick.tick() => task().await,
         }
     }
 }
 
+/// Checks the data directory periodically (see `jobs::health`).
+async fn storage_checks(service: JobService, every: Duration, stop: CancellationToken) {
+    periodically(every, stop, || async {
+        service.check_storage().await;
+    })
+    .await
+}
+
 /// Removes expired jobs and fails queued jobs past their deadline, periodically.
 async fn janitor(service: JobService, every: Duration, stop: CancellationToken) {
-    let mut tick = tokio::time::interval(every);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = stop.cancelled() => break,
-            _ = tick.tick() => {
-                if let Err(e) = service.sweep().await {
-                    tracing::error!(error = %e, "retention sweep failed");
-                }
-            }
+    periodically(every, stop, || async {
+        if let Err(e) = service.sweep().await {
+            tracing::error!(error = %e, "retention sweep failed");
         }
-    }
+    })
+    .await
 }
 
 /// The denoisers of the workers: engines loaded from `engine`, slowed down by the hidden
