@@ -19,7 +19,7 @@
 use rayon::prelude::*;
 
 use super::preprocess::Rect;
-use super::reconstruct::{exp_nonpositive, Fused, MulAdd, Unfused};
+use super::reconstruct::{accumulate, exp_nonpositive, normalize, Fused, MulAdd, Unfused};
 
 /// One component's network outputs over a region, level by level.
 pub struct Pyramid<'a> {
@@ -273,28 +273,10 @@ fn filter_row_k<M: MulAdd, const G: usize>(level: &Level, y: usize, x0: usize, o
             let t = ky * k + kx;
             let l: [&[f32]; G] = std::array::from_fn(|g| &logits[(t + g) * n + start..][..cw]);
             let p: [[&[f32]; G]; 3] = std::array::from_fn(|c| std::array::from_fn(|g| &padded[c][kx + g..][..cw]));
-            let [a0, a1, a2] = &mut acc;
-            let (a0, a1, a2, sum, max) = (&mut a0[..cw], &mut a1[..cw], &mut a2[..cw], &mut sum[..cw], &max[..cw]);
-            for x in 0..cw {
-                let e: [f32; G] = std::array::from_fn(|g| exp_nonpositive::<M>(l[g][x] - max[x]));
-                let (mut s, mut cr, mut cg, mut cb) = (sum[x], a0[x], a1[x], a2[x]);
-                for g in 0..G {
-                    s += e[g];
-                    cr = M::mul_add(e[g], p[0][g][x], cr);
-                    cg = M::mul_add(e[g], p[1][g][x], cg);
-                    cb = M::mul_add(e[g], p[2][g][x], cb);
-                }
-                (sum[x], a0[x], a1[x], a2[x]) = (s, cr, cg, cb);
-            }
+            accumulate::<M, G>(l, p, &max, &mut sum, &mut acc);
         }
     }
-    let [or, og, ob] = out;
-    for x in 0..cw {
-        let inv = 1.0 / sum[x];
-        or[x] = acc[0][x] * inv;
-        og[x] = acc[1][x] * inv;
-        ob[x] = acc[2][x] * inv;
-    }
+    normalize(&acc, &sum, out);
 }
 
 /// `dst[j] = src[x0 + j − r]`, the index clamped to `src`.

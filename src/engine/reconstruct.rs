@@ -140,23 +140,44 @@ fn filter_row<M: MulAdd>(logits: &[f32], color: &[f32], region: Rect, core: Rect
             let k = taps.start + kx;
             let l: [&[f32]; GROUP] = std::array::from_fn(|g| &logits[(k + g) * n + row_start..][..cw]);
             let p: [[&[f32]; GROUP]; 3] = std::array::from_fn(|c| std::array::from_fn(|g| &padded[c][kx + g..][..cw]));
-            let [a0, a1, a2] = &mut acc;
-            let (a0, a1, a2, sum, max) = (&mut a0[..cw], &mut a1[..cw], &mut a2[..cw], &mut sum[..cw], &max[..cw]);
-            for x in 0..cw {
-                let e: [f32; GROUP] = std::array::from_fn(|g| exp_nonpositive::<M>(l[g][x] - max[x]));
-                let (mut s, mut r, mut gr, mut b) = (sum[x], a0[x], a1[x], a2[x]);
-                for g in 0..GROUP {
-                    s += e[g];
-                    r = M::mul_add(e[g], p[0][g][x], r);
-                    gr = M::mul_add(e[g], p[1][g][x], gr);
-                    b = M::mul_add(e[g], p[2][g][x], b);
-                }
-                (sum[x], a0[x], a1[x], a2[x]) = (s, r, gr, b);
-            }
+            accumulate::<M, GROUP>(l, p, &max[..cw], &mut sum[..cw], &mut acc);
         }
     }
-    let [or, og, ob] = out;
+    normalize(&acc, &sum[..cw], out);
+}
+
+/// Adds `G` taps of one kernel row to the softmax-weighted sums of a row of pixels, relative
+/// to the running maximum `max`: `e = exp(l − max)`, `sum += e`, `acc[c] += e · p[c]`. The
+/// inner loop of both reconstructions (contract v1 here, each pyramid level of v2 in
+/// `multiscale`).
+#[inline(always)]
+pub(super) fn accumulate<M: MulAdd, const G: usize>(
+    l: [&[f32]; G],
+    p: [[&[f32]; G]; 3],
+    max: &[f32],
+    sum: &mut [f32],
+    acc: &mut [Vec<f32>; 3],
+) {
+    let cw = sum.len();
+    let [a0, a1, a2] = acc;
+    let (a0, a1, a2, max) = (&mut a0[..cw], &mut a1[..cw], &mut a2[..cw], &max[..cw]);
     for x in 0..cw {
+        let e: [f32; G] = std::array::from_fn(|g| exp_nonpositive::<M>(l[g][x] - max[x]));
+        let (mut s, mut r, mut gr, mut b) = (sum[x], a0[x], a1[x], a2[x]);
+        for g in 0..G {
+            s += e[g];
+            r = M::mul_add(e[g], p[0][g][x], r);
+            gr = M::mul_add(e[g], p[1][g][x], gr);
+            b = M::mul_add(e[g], p[2][g][x], b);
+        }
+        (sum[x], a0[x], a1[x], a2[x]) = (s, r, gr, b);
+    }
+}
+
+/// `out[c] = acc[c] / sum`, pixel by pixel.
+pub(super) fn normalize(acc: &[Vec<f32>; 3], sum: &[f32], out: [&mut [f32]; 3]) {
+    let [or, og, ob] = out;
+    for x in 0..sum.len() {
         let inv = 1.0 / sum[x];
         or[x] = acc[0][x] * inv;
         og[x] = acc[1][x] * inv;
