@@ -4,6 +4,8 @@
 mod common;
 mod daemon_common;
 
+use std::time::Duration;
+
 use futures_util::stream;
 use mcdenoise::client::{fetch_grpc, grpc_connect, upload_stream};
 use mcdenoise::frame::Frame;
@@ -177,9 +179,18 @@ async fn health_and_reflection_are_served() {
         tonic::transport::Endpoint::from_shared(format!("http://{}", d.grpc)).unwrap().connect().await.unwrap();
     let mut health = tonic_health::pb::health_client::HealthClient::new(channel.clone());
     let serving = tonic_health::pb::health_check_response::ServingStatus::Serving as i32;
+    // Health follows readiness through a watch: it may lag `/readyz` by a moment.
     for service in ["", "mcdenoise.v1.Denoiser"] {
-        let reply = health.check(tonic_health::pb::HealthCheckRequest { service: service.into() }).await.unwrap();
-        assert_eq!(reply.into_inner().status, serving, "{service}");
+        let t = std::time::Instant::now();
+        loop {
+            let request = tonic_health::pb::HealthCheckRequest { service: service.into() };
+            let status = health.check(request).await.unwrap().into_inner().status;
+            if status == serving {
+                break;
+            }
+            assert!(t.elapsed() < Duration::from_secs(5), "{service}: not serving 5 s after /readyz said ready");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
     }
     let mut reflection = ServerReflectionClient::new(channel);
     let request = ServerReflectionRequest {
