@@ -16,9 +16,10 @@
 //! median positive luminance (dark regions then count as that level, not as minus
 //! infinity). A pixel is an outlier when all of these hold:
 //!
-//! 1. **Isolated**: each of its 8 neighbours is below half of it (`g_q + δ < (g_p + δ) / 2`).
-//!    A light, a highlight or a bright edge two or more pixels wide always has a neighbour
-//!    of similar brightness, so it is never touched.
+//! 1. **Isolated, alone or as a pair**: each of its 8 neighbours is below half of it
+//!    (`g_q + δ < (g_p + δ) / 2`), or all but one, whose own other neighbours are below half
+//!    of that one (a bright path found twice in adjacent pixels). A light, a highlight or a
+//!    bright edge or line has more bright neighbours, so it is never touched.
 //! 2. **Far above its neighbourhood**: `y_p > min(m + τ / s, y_max + ln 4 / s)`, with `m`
 //!    the median, `σ` the normalised MAD (1.4826 × median absolute deviation) and `y_max`
 //!    the largest `y` of the 5×5 neighbourhood without the centre, `τ = max(3σ, ln 4)` and
@@ -223,16 +224,9 @@ fn examine(
 ) -> Option<Fix> {
     let i = y * w + x;
     let centre = g[i] + delta;
-    // 1. Isolated: every 8-neighbour below half of it (cheap; most pixels stop here).
-    let limit = ISOLATION * centre;
-    let (x0, x1) = (x.saturating_sub(1), (x + 1).min(w - 1));
-    let (y0, y1) = (y.saturating_sub(1), (y + 1).min(h - 1));
-    for yy in y0..=y1 {
-        for xx in x0..=x1 {
-            if (yy != y || xx != x) && g[yy * w + xx] + delta >= limit {
-                return None;
-            }
-        }
+    // 1. Isolated, alone or as a pair (cheap; most pixels stop here).
+    if !isolated(g, w, h, x, y, delta) {
+        return None;
     }
     // 3. Noisy by its own variance.
     if let Some(var) = layer.variance {
@@ -271,6 +265,39 @@ fn examine(
     let target = (bound.exp() - delta).min(brightest).max(0.0);
     let scale = if g[i] > 0.0 { (target / g[i]).min(1.0) } else { 1.0 };
     Some(Fix { index: i, scale })
+}
+
+/// Whether (x, y) stands alone above its 8 neighbours (each below half of it), or with one
+/// partner: a single neighbour not below half, whose own other neighbours are all below half
+/// of the partner. Two-sample clusters are as common as single outliers where a bright path
+/// is found twice (a caustic seen through a small lens); three or more bright neighbours
+/// (a highlight, an edge, a line) are left alone.
+fn isolated(g: &[f32], w: usize, h: usize, x: usize, y: usize, delta: f32) -> bool {
+    // The neighbours of (x, y) other than `except` not below `limit`: `Ok(None)` for none,
+    // `Ok(Some(j))` for one, `Err(())` for more (stops at the second).
+    let bright_around = |x: usize, y: usize, except: usize, limit: f32| -> Result<Option<usize>, ()> {
+        let (x0, x1) = (x.saturating_sub(1), (x + 1).min(w - 1));
+        let (y0, y1) = (y.saturating_sub(1), (y + 1).min(h - 1));
+        let mut found = None;
+        for yy in y0..=y1 {
+            for xx in x0..=x1 {
+                let j = yy * w + xx;
+                if (yy != y || xx != x) && j != except && g[j] + delta >= limit {
+                    if found.is_some() {
+                        return Err(());
+                    }
+                    found = Some(j);
+                }
+            }
+        }
+        Ok(found)
+    };
+    let i = y * w + x;
+    match bright_around(x, y, usize::MAX, ISOLATION * (g[i] + delta)) {
+        Ok(None) => true,
+        Ok(Some(j)) => bright_around(j % w, j / w, i, ISOLATION * (g[j] + delta)) == Ok(None),
+        Err(()) => false,
+    }
 }
 
 /// Luminance of the variance of pixel `i`, in the same domain as `g` (divided by
@@ -362,6 +389,30 @@ mod tests {
             // No brighter than the brightest neighbour (the field's level is ~0.5).
             assert!(v > 0.3 && v < 0.8, "{magnitude:e} became {v}");
         }
+    }
+
+    #[test]
+    fn a_pair_of_outliers_is_clamped_and_a_two_pixel_line_is_not() {
+        let (w, h) = (32, 24);
+        let mut c = rgb(w, h, 0.05);
+        // The measured case: a bright path found in two vertically adjacent pixels.
+        let (a, b) = (11 * w + 17, 12 * w + 17);
+        for p in c.iter_mut() {
+            (p[a], p[b]) = (6.3, 8.8);
+        }
+        let mut fixes = detect(layer(&c, None), w, h, Fireflies::default());
+        fixes.sort_by_key(|f| f.index);
+        assert_eq!(fixes.iter().map(|f| f.index).collect::<Vec<_>>(), [a, b], "{fixes:?}");
+        apply(&fixes, &mut c);
+        assert!(luminance(c[0][b], c[1][b], c[2][b]) < 0.5, "clamped to its neighbourhood");
+        // Three in a row is a line (or a highlight): left alone.
+        let mut c = rgb(w, h, 0.05);
+        for i in [a, b, 13 * w + 17] {
+            for p in c.iter_mut() {
+                p[i] = 8.0;
+            }
+        }
+        assert!(detect(layer(&c, None), w, h, Fireflies::default()).is_empty());
     }
 
     #[test]
