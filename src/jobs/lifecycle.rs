@@ -178,28 +178,40 @@ impl JobService {
     /// start.
     pub(super) fn requeue(&self, id: &str) {
         let journal = self.journal();
+        if self.back_to_queue(&journal, id, None) {
+            drop(journal);
+            self.inner.telemetry.job_interrupted();
+            tracing::info!(job_id = id, "interrupted by shutdown; queued for the next start");
+        }
+    }
+
+    /// A running job queued again, written (a failed write is only logged: queued and
+    /// running are both run again after a restart) and applied in memory: into the queue
+    /// at once, or at `due` (Unix ms). False if the job is gone or not running.
+    fn back_to_queue(&self, _journal: &Journal<'_>, id: &str, due: Option<i64>) -> bool {
         let next = {
             let st = self.lock();
-            let Some(entry) = st.jobs.get(id).filter(|e| e.record.state == JobState::Running) else { return };
+            let Some(entry) = st.jobs.get(id).filter(|e| e.record.state == JobState::Running) else { return false };
             let mut next = entry.record.clone();
             next.state = JobState::Queued;
             next.progress = Progress::default();
             next
         };
         if let Err(e) = self.inner.store.put(&next) {
-            tracing::error!(job_id = id, error = %e, "cannot persist the interrupted job");
+            tracing::error!(job_id = id, error = %e, "cannot persist the re-queued job");
             self.storage_failed(&e);
         }
         let mut st = self.lock();
-        st.queue.push(next.options.priority, next.seq, next.id.clone());
+        match due {
+            None => st.queue.push(next.options.priority, next.seq, next.id.clone()),
+            Some(t) => st.delayed.push((t, id.to_string())),
+        }
         if let Some(entry) = st.jobs.get_mut(id) {
             entry.record = next;
+            let _ = entry.events.send(JobEvent::Progress(Progress::default()));
         }
         self.update_depth(&st);
-        drop(st);
-        drop(journal);
-        self.inner.telemetry.job_interrupted();
-        tracing::info!(job_id = id, "interrupted by shutdown; queued for the next start");
+        true
     }
 
     /// Puts a running job whose input could not be read or whose result could not be
@@ -224,29 +236,12 @@ impl JobService {
             }
             // Not even the failure can be written: keep it queued until storage heals.
         }
-        let next = {
-            let st = self.lock();
-            let Some(entry) = st.jobs.get(id) else { return };
-            let mut next = entry.record.clone();
-            next.state = JobState::Queued;
-            next.progress = Progress::default();
-            next
-        };
-        if let Err(e) = self.inner.store.put(&next) {
-            // Queued and running are both re-run after a restart: nothing to lose.
-            tracing::debug!(job_id = id, error = %e, "cannot persist the re-queued job");
-        }
         let delay_ms = (1000i64 << (failures.saturating_sub(1)).min(5)).min(30_000);
-        let mut st = self.lock();
-        if let Some(entry) = st.jobs.get_mut(id) {
-            entry.record = next;
-            let _ = entry.events.send(JobEvent::Progress(Progress::default()));
+        if self.back_to_queue(&journal, id, Some(self.now() + delay_ms)) {
+            drop(journal);
+            tracing::warn!(job_id = id, failures, retry_in_ms = delay_ms, error = %message, "storage fault: queued again after a pause");
+            self.inner.work.notify_all();
         }
-        st.delayed.push((self.now() + delay_ms, id.to_string()));
-        drop(st);
-        drop(journal);
-        tracing::warn!(job_id = id, failures, retry_in_ms = delay_ms, error = %message, "storage fault: queued again after a pause");
-        self.inner.work.notify_all();
     }
 
     /// Moves the delayed jobs that are due into the queue (under the caller's state lock).
