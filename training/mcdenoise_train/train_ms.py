@@ -284,7 +284,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--val-frames", type=int, default=None)
     p.add_argument("--raw-cache", action="store_true",
                    help="keep each frame's raw buffers as .npz beside the data (faster loading next time)")
-    p.add_argument("--time-limit", type=float, default=None, help="stop (saving state) after this many seconds")
+    p.add_argument("--time-limit", type=float, default=None, help="stop (saving state) after this many seconds of this run (a resumed run counts afresh)")
     p.add_argument("--deadline", type=float, default=None,
                    help="unix time by which training, validation and export must be done: caps --time-budget "
                         "and --time-limit at what is left after loading the data, less a minute for the export")
@@ -380,7 +380,7 @@ def main(argv=None) -> int:
                    step=step, steps=a.steps, best=best, elapsed=time.time() - t0)
 
     stop = False
-    t_fit = time.time()
+    t_fit = t_run = time.time()
     while step < a.steps and not stop:
         raw, ref, maxima = crops(train, a.batch, a.patch, g)
         raw, ref = augment(raw, ref, g, a)
@@ -408,7 +408,7 @@ def main(argv=None) -> int:
             log.flush()
             if step % 100 == 0:
                 print(f"step {step}/{a.steps} loss {row['loss']:.4f} {row['time']:.0f}s", file=sys.stderr, flush=True)
-        stop = a.time_limit is not None and time.time() - t0 > a.time_limit
+        stop = a.time_limit is not None and time.time() - t_run > a.time_limit
         if step % a.val_every == 0 or step == a.steps or stop:
             v = validate(net, val) if len(val) else {"score": float(loss), "relmse": float("nan")}
             if len(val):

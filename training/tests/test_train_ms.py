@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from mcdenoise_train import train_ms
+from mcdenoise_train.checkpoint import load_state, save_state
 from mcdenoise_train.export_ms import read_metadata_v2
 from mcdenoise_train.exr import read_exr, write_exr
 from mcdenoise_train.frames import synthetic_frame
@@ -103,9 +104,13 @@ def test_training_steps_resume_and_export(tmp_path):
     val = [json.loads(l) for l in open(out / "val.jsonl")]
     assert [v["step"] for v in val] == [2, 3] and all(np.isfinite(v["relmse"]) for v in val)
     assert "nocov" in val[0] and np.isfinite(val[0]["nocov"]["relmse"])
-    # Resume continues from step 3 to 5 with the saved optimizer and schedule.
+    # Resume continues from step 3 to 5 with the saved optimizer and schedule; a time limit
+    # counts this run's seconds only, not those the earlier runs took.
+    state = load_state(out / "state.pt")
+    state = {k: v for k, v in state.items() if k not in ("format", "version")}
+    save_state(out / "state.pt", **{**state, "elapsed": 1e6})
     assert train_ms.main(["--data", str(root), "--out", str(out), "--steps", "5", "--resume", *small,
-                          "--export", str(models)]) == 0
+                          "--time-limit", "3600", "--export", str(models)]) == 0
     val = [json.loads(l) for l in open(out / "val.jsonl")]
     assert [v["step"] for v in val] == [2, 3, 4, 5]
     for variant in ("full", "nocov"):
