@@ -4,6 +4,7 @@
 //! document served at `/v1/openapi.json`.
 
 mod error;
+pub mod multipart;
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -11,7 +12,7 @@ use std::sync::Arc;
 use axum::body::Body;
 use axum::extract::connect_info::Connected;
 use axum::extract::{
-    ConnectInfo, DefaultBodyLimit, Extension, FromRequest, MatchedPath, Multipart, Path, Query, Request, State,
+    ConnectInfo, DefaultBodyLimit, Extension, MatchedPath, Path, Query, Request, State,
 };
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
@@ -26,6 +27,7 @@ use serde_json::{json, Value};
 use tokio_util::sync::CancellationToken;
 
 pub use error::ApiError;
+use multipart::{FormData, FormError};
 
 use crate::auth::{ClientId, Tokens};
 use crate::error::Error;
@@ -354,6 +356,18 @@ fn serde_urlencoded_query(q: &str) -> Result<OptionsQuery, Error> {
         .map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))
 }
 
+/// Largest `options` part of a multipart body, in bytes.
+const OPTIONS_LIMIT: usize = 64 * 1024;
+
+fn form_error(e: FormError) -> Error {
+    match e {
+        FormError::TooLarge { .. } => Error::TooLarge(e.to_string()),
+        FormError::Malformed(_) | FormError::Body(_) => Error::BadRequest(e.to_string()),
+    }
+}
+
+/// A multipart body: its slot is taken before any of it is read, and nothing of it is
+/// held in memory beyond the limits of [`multipart`] and the `options` part's.
 async fn submit_multipart(
     app: AppState,
     client: ClientId,
@@ -361,25 +375,26 @@ async fn submit_multipart(
     request: Request,
 ) -> Result<Response, ApiError> {
     let header_key = idempotency_header(request.headers())?;
-    let mut multipart = Multipart::from_request(request, &())
-        .await
-        .map_err(|e| Error::BadRequest(format!("bad multipart body: {}", e.body_text())))?;
+    let content_type = request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    let boundary = multipart::boundary(content_type)
+        .ok_or_else(|| Error::BadRequest("bad multipart body: the Content-Type names no boundary".into()))?;
+    let mut slot = Some(app.service.reserve(&client)?);
+    let body = request.into_body().into_data_stream();
+    let mut form = FormData::new(body, &boundary, multipart::Limits::default());
     let mut ticket = None;
-    let bad = |e: axum::extract::multipart::MultipartError| {
-        Error::BadRequest(format!("bad multipart body: {}", e.body_text()))
-    };
-    while let Some(mut field) = multipart.next_field().await.map_err(bad)? {
-        let name = field.name().unwrap_or("").to_string();
+    let mut options_seen = false;
+    while let Some(head) = form.next_part().await.map_err(form_error)? {
+        let name = head.name.unwrap_or_default();
         match name.as_str() {
             "options" => {
                 if ticket.is_some() {
                     return Err(Error::BadRequest("the `options` part must come before `frame`".into()).into());
                 }
-                let text = field.text().await.map_err(bad)?;
-                if text.len() > 64 * 1024 {
-                    return Err(Error::BadRequest("the `options` part is over 64 KiB".into()).into());
+                if std::mem::replace(&mut options_seen, true) {
+                    return Err(Error::BadRequest("the `options` part was sent twice".into()).into());
                 }
-                options = serde_json::from_str::<JobOptions>(&text)
+                let text = form.read_to_limit("the `options` part", OPTIONS_LIMIT).await.map_err(form_error)?;
+                options = serde_json::from_slice::<JobOptions>(&text)
                     .map_err(|e| Error::BadRequest(format!("bad `options` JSON: {e}")))?;
                 if options.idempotency_key.is_none() {
                     options.idempotency_key = header_key.clone();
@@ -388,14 +403,15 @@ async fn submit_multipart(
             "frame" | "reference" => {
                 let part = if name == "frame" { UploadPart::Frame } else { UploadPart::Reference };
                 if ticket.is_none() {
-                    match app.service.admit(options.clone(), "http", &client)? {
+                    let slot = slot.take().expect("reserved above, taken once");
+                    match app.service.admit_reserved(slot, options.clone(), "http")? {
                         Admission::Existing(status) => return Ok(accepted(&status, true)),
                         Admission::New(t) => ticket = Some(t),
                     }
                 }
                 let t = ticket.as_mut().expect("admitted above");
                 let mut sink = t.sink(part).await?;
-                while let Some(chunk) = field.chunk().await.map_err(bad)? {
+                while let Some(chunk) = form.chunk().await.map_err(form_error)? {
                     sink.write(&chunk).await?;
                 }
                 if sink.written() == 0 {
@@ -405,7 +421,8 @@ async fn submit_multipart(
             }
             other => {
                 return Err(Error::BadRequest(format!(
-                    "unknown multipart part `{other}` (expected options, frame, reference)"
+                    "unknown multipart part `{}` (expected options, frame, reference)",
+                    multipart::truncate(other, 64)
                 ))
                 .into())
             }

@@ -77,7 +77,7 @@ use crate::engine::{DenoiserFactory, EngineConfig, Fireflies, ModelInfo};
 use crate::error::{Error, Result};
 use crate::frame::Limits;
 use crate::telemetry::Telemetry;
-pub use admission::Admission;
+pub use admission::{Admission, Slot};
 pub use health::StorageProblem;
 pub use queries::ListFilter;
 use queue::Queue;

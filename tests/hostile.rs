@@ -1,0 +1,174 @@
+//! Slow, stalled and hostile clients against the daemon binary on loopback (issue 23):
+//! bodies that try to make the daemon buffer them, uploads that count against the limits
+//! however they are sent.
+
+mod common;
+mod daemon_common;
+
+use std::time::Duration;
+
+use hyper::{Method, StatusCode};
+use serde_json::Value;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+use daemon_common::*;
+use mcdenoise::client::{body_bytes, HttpClient};
+
+const BOUNDARY: &str = "hostile-boundary-1234";
+
+/// `VmHWM` (peak resident memory) of a process, in bytes.
+fn peak_rss(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let line = status.lines().find(|l| l.starts_with("VmHWM:")).expect("VmHWM in /proc/<pid>/status");
+    let kib: u64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+    kib * 1024
+}
+
+/// The `host:port` of a `http://host:port` base.
+fn authority(base: &str) -> &str {
+    base.trim_start_matches("http://")
+}
+
+/// Reads an HTTP/1.1 answer (status and JSON body, sized by Content-Length).
+async fn read_answer(stream: &mut (impl AsyncReadExt + Unpin)) -> (u16, Value) {
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 4096];
+    let head_end = loop {
+        let n = stream.read(&mut chunk).await.expect("the answer");
+        assert!(n > 0, "the connection closed without an answer: {}", String::from_utf8_lossy(&buf));
+        buf.extend_from_slice(&chunk[..n]);
+        if let Some(at) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
+            break at + 4;
+        }
+    };
+    let head = String::from_utf8_lossy(&buf[..head_end]).to_string();
+    let status: u16 = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    let length: usize = head
+        .lines()
+        .find_map(|l| l.to_ascii_lowercase().strip_prefix("content-length:").map(|v| v.trim().parse().unwrap()))
+        .unwrap_or(0);
+    while buf.len() < head_end + length {
+        let n = stream.read(&mut chunk).await.unwrap();
+        assert!(n > 0, "the answer was cut short");
+        buf.extend_from_slice(&chunk[..n]);
+    }
+    (status, serde_json::from_slice(&buf[head_end..head_end + length]).unwrap_or(Value::Null))
+}
+
+/// Sends `prefix`, then `filler` bytes (in 1 MiB writes) as fast as the daemon takes them,
+/// as one multipart `POST /v1/jobs` declaring `total` bytes; returns the answer, read
+/// while the body is still being sent.
+async fn flood(authority: &str, prefix: &[u8], filler: u8, total: u64) -> (u16, Value) {
+    let stream = TcpStream::connect(authority).await.unwrap();
+    let (mut rd, mut wr) = stream.into_split();
+    let head = format!(
+        "POST /v1/jobs HTTP/1.1\r\nhost: x\r\ncontent-type: multipart/form-data; boundary={BOUNDARY}\r\n\
+         content-length: {total}\r\n\r\n"
+    );
+    let prefix = prefix.to_vec();
+    let writer = tokio::spawn(async move {
+        wr.write_all(head.as_bytes()).await?;
+        wr.write_all(&prefix).await?;
+        let block = vec![filler; 1 << 20];
+        let mut sent = prefix.len() as u64;
+        while sent < total {
+            let n = block.len().min((total - sent) as usize);
+            wr.write_all(&block[..n]).await?;
+            sent += n as u64;
+        }
+        Ok::<u64, std::io::Error>(sent)
+    });
+    let answer = tokio::time::timeout(Duration::from_secs(60), read_answer(&mut rd)).await.expect("an answer");
+    let sent = writer.is_finished();
+    writer.abort();
+    assert!(!sent, "the whole body was sent before the answer: it was read, not refused early");
+    answer
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn huge_multipart_preambles_headers_and_options_are_refused_without_buffering_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = spawn_daemon(dir.path(), &[]);
+    let http = HttpClient::new(&p.http, None);
+    wait_ready(&http).await;
+    let before = peak_rss(p.child.id());
+    const HUGE: u64 = 300 << 20;
+
+    // An `options` part of 300 MiB: refused once past 64 KiB.
+    let options = format!(
+        "--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"options\"\r\nContent-Type: application/json\r\n\r\n"
+    );
+    let (status, err) = flood(authority(&p.http), options.as_bytes(), b' ', HUGE).await;
+    assert_eq!(status, 413, "{err}");
+    assert_eq!(err["error"]["code"], "too_large", "{err}");
+    assert_eq!(err["error"]["message"], "the `options` part is over its limit of 65536 bytes", "{err}");
+
+    // A preamble of 300 MiB (no delimiter ever comes).
+    let (status, err) = flood(authority(&p.http), b"", b'p', HUGE).await;
+    assert_eq!(status, 413, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("preamble"), "{err}");
+
+    // Part headers of 300 MiB.
+    let headers = format!("--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"frame\"\r\nX-Pad: ");
+    let (status, err) = flood(authority(&p.http), headers.as_bytes(), b'h', HUGE).await;
+    assert_eq!(status, 413, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("headers of multipart part 1"), "{err}");
+
+    let after = peak_rss(p.child.id());
+    let growth = after.saturating_sub(before);
+    eprintln!("peak resident memory: {} MiB before, {} MiB after (+{} MiB)", before >> 20, after >> 20, growth >> 20);
+    assert!(growth < 128 << 20, "resident memory grew by {} MiB", growth >> 20);
+
+    // The daemon still serves a job.
+    let (status, job) = http
+        .json(Method::POST, "/v1/jobs", &[("content-type", "image/x-exr")], body_bytes(frame(16, 16)))
+        .await
+        .unwrap();
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_multipart_upload_holds_its_client_slot_from_its_first_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = spawn_daemon(dir.path(), &["--max-uploads-per-client", "1"]);
+    let http = HttpClient::new(&p.http, None);
+    wait_ready(&http).await;
+
+    // A multipart upload that stops inside its `options` part: it is in flight.
+    let mut stalled = TcpStream::connect(authority(&p.http)).await.unwrap();
+    let body = format!("--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"options\"\r\n\r\n{{\"prior");
+    let head = format!(
+        "POST /v1/jobs HTTP/1.1\r\nhost: x\r\ncontent-type: multipart/form-data; boundary={BOUNDARY}\r\n\
+         content-length: 100000\r\n\r\n{body}"
+    );
+    stalled.write_all(head.as_bytes()).await.unwrap();
+
+    // The same client (authentication is off: its address) gets 429 for a second upload.
+    let (content_type, form) = multipart("{}", &[("frame", &frame(16, 16))]);
+    let submit = || async {
+        http.json(Method::POST, "/v1/jobs", &[("content-type", content_type.as_str())], body_bytes(form.clone()))
+            .await
+            .unwrap()
+    };
+    let (status, err) = poll("the stalled upload holding the slot", Duration::from_secs(10), || async {
+        match submit().await {
+            (StatusCode::TOO_MANY_REQUESTS, err) => Ok((StatusCode::TOO_MANY_REQUESTS, err)),
+            other => Err(other),
+        }
+    })
+    .await;
+    assert_eq!(status, StatusCode::TOO_MANY_REQUESTS);
+    assert_eq!(err["error"]["code"], "client_limit", "{err}");
+
+    // Gone, it gives the slot back.
+    drop(stalled);
+    let job = poll("the slot coming back", Duration::from_secs(10), || async {
+        match submit().await {
+            (StatusCode::ACCEPTED, job) => Ok(job),
+            other => Err(other),
+        }
+    })
+    .await;
+    assert_eq!(job["state"], "queued", "{job}");
+}
