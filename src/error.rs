@@ -9,6 +9,7 @@
 //! | `BadRequest` | 400 | INVALID_ARGUMENT |
 //! | `InvalidFrame` | 422 | INVALID_ARGUMENT |
 //! | `TooLarge` | 413 | INVALID_ARGUMENT |
+//! | `Timeout` | 408 | DEADLINE_EXCEEDED |
 //! | `Unauthenticated` | 401 | UNAUTHENTICATED |
 //! | `NotFound` | 404 | NOT_FOUND |
 //! | `Conflict` | 409 | FAILED_PRECONDITION |
@@ -33,6 +34,9 @@ pub enum Error {
     /// Body or frame over a configured limit.
     #[error("{0}")]
     TooLarge(String),
+    /// An upload stopped sending for longer than `--upload-timeout`.
+    #[error("{0}")]
+    Timeout(String),
     #[error("{0}")]
     Unauthenticated(String),
     #[error("{0}")]
@@ -71,6 +75,7 @@ impl Error {
             Error::BadRequest(_) => "bad_request",
             Error::InvalidFrame(_) => "invalid_frame",
             Error::TooLarge(_) => "too_large",
+            Error::Timeout(_) => "timeout",
             Error::Unauthenticated(_) => "unauthenticated",
             Error::NotFound(_) => "not_found",
             Error::Conflict(_) => "conflict",

@@ -51,11 +51,12 @@ pub const STAGES: [&str; 7] = ["queue", "decode", "preprocess", "inference", "re
 /// Terminal outcomes (`mcdenoise_jobs_finished_total{outcome}`).
 pub const OUTCOMES: [&str; 3] = ["succeeded", "failed", "cancelled"];
 /// Why a submission was refused (`mcdenoise_jobs_rejected_total{reason}`).
-pub const REJECTIONS: [&str; 9] = [
+pub const REJECTIONS: [&str; 10] = [
     "queue_full",
     "client_limit",
     "invalid",
     "too_large",
+    "timeout",
     "unavailable",
     "storage_full",
     "storage_unavailable",

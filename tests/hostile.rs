@@ -172,3 +172,167 @@ async fn a_multipart_upload_holds_its_client_slot_from_its_first_byte() {
     .await;
     assert_eq!(job["state"], "queued", "{job}");
 }
+
+/// Reads until the other end closes the connection (data is ignored); how long that took.
+async fn wait_closed(stream: &mut TcpStream, limit: Duration) -> Duration {
+    let t = std::time::Instant::now();
+    let mut buf = [0u8; 4096];
+    loop {
+        match tokio::time::timeout(limit.saturating_sub(t.elapsed()), stream.read(&mut buf)).await {
+            Err(_) => panic!("the connection is still open after {limit:?}"),
+            Ok(Ok(0)) | Ok(Err(_)) => return t.elapsed(),
+            Ok(Ok(_)) => {}
+        }
+    }
+}
+
+/// The value of a sample in the Prometheus text.
+fn metric(text: &str, sample: &str) -> f64 {
+    text.lines()
+        .find_map(|l| l.strip_prefix(sample).and_then(|v| v.trim().parse().ok()))
+        .unwrap_or_else(|| panic!("no {sample} in the metrics"))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn half_headers_idle_connections_and_stalled_uploads_are_closed_within_their_timeouts() {
+    let dir = tempfile::tempdir().unwrap();
+    let timeouts = [
+        "--header-timeout",
+        "2s",
+        "--upload-timeout",
+        "2s",
+        "--idle-timeout",
+        "3s",
+        "--keepalive-interval",
+        "1s",
+        "--keepalive-timeout",
+        "1s",
+        "--max-uploads-per-client",
+        "1",
+    ];
+    let p = spawn_daemon(dir.path(), &timeouts);
+    let http = HttpClient::new(&p.http, None);
+    wait_ready(&http).await;
+    // Generous: what matters is that they close at all, near their configured time.
+    let limit = Duration::from_secs(15);
+
+    // Half a request head.
+    let mut half = TcpStream::connect(authority(&p.http)).await.unwrap();
+    half.write_all(b"GET /readyz HTTP/1.1\r\nhost: x\r\n").await.unwrap();
+    // A connection that sends nothing at all.
+    let mut idle = TcpStream::connect(authority(&p.http)).await.unwrap();
+    // A gRPC connection that sends only the HTTP/2 preface and an empty SETTINGS frame.
+    let mut preface = TcpStream::connect(&p.grpc).await.unwrap();
+    preface.write_all(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n\x00\x00\x00\x04\x00\x00\x00\x00\x00").await.unwrap();
+    // An upload with an idempotency key that stops after 1 KiB.
+    let mut stalled = TcpStream::connect(authority(&p.http)).await.unwrap();
+    stalled
+        .write_all(
+            b"POST /v1/jobs HTTP/1.1\r\nhost: x\r\ncontent-type: image/x-exr\r\nidempotency-key: shot-7\r\n\
+              content-length: 100000\r\n\r\n",
+        )
+        .await
+        .unwrap();
+    stalled.write_all(&frame(16, 16)[..1024]).await.unwrap();
+
+    let t = std::time::Instant::now();
+    let (status, err) = tokio::time::timeout(limit, read_answer(&mut stalled)).await.expect("an answer");
+    let answered = t.elapsed();
+    assert_eq!(status, 408, "{err}");
+    assert_eq!(err["error"]["code"], "timeout", "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("--upload-timeout"), "{err}");
+    for (what, conn) in [("half a header", &mut half), ("an idle connection", &mut idle), ("a gRPC preface", &mut preface)]
+    {
+        wait_closed(conn, limit).await;
+        eprintln!("{what}: closed after {:?}", t.elapsed());
+    }
+    eprintln!("stalled upload: 408 after {answered:?}");
+
+    // Its slot and its key are free again: the same client, the same key, accepted.
+    let (status, job) = http
+        .json(
+            Method::POST,
+            "/v1/jobs",
+            &[("content-type", "image/x-exr"), ("idempotency-key", "shot-7")],
+            body_bytes(frame(16, 16)),
+        )
+        .await
+        .unwrap();
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let (status, metrics) = get_json(&http, "/metrics").await.unwrap();
+    assert_eq!(status, StatusCode::OK);
+    let metrics = metrics.as_str().unwrap();
+    assert_eq!(metric(metrics, "mcdenoise_jobs_rejected_total{reason=\"timeout\"}"), 1.0);
+    let logs = p.logs.lock().unwrap().join("\n");
+    assert!(logs.contains("upload timed out"), "the timeout is logged");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_grpc_upload_gets_deadline_exceeded_and_frees_its_slot() {
+    use mcdenoise::grpc::pb;
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--upload-timeout", "1s", "--max-uploads-per-client", "1"]).await;
+    d.ready().await;
+    let mut api = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let exr = frame(16, 16);
+    let header = pb::SubmitJobRequest {
+        message: Some(pb::submit_job_request::Message::Header(pb::SubmitHeader {
+            frame_size: exr.len() as u64,
+            ..Default::default()
+        })),
+    };
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tx.send(header).await.unwrap();
+    let status = tokio::time::timeout(
+        Duration::from_secs(15),
+        api.submit_job(tokio_stream::wrappers::ReceiverStream::new(rx)),
+    )
+    .await
+    .expect("an answer")
+    .unwrap_err();
+    assert_eq!(status.code(), tonic::Code::DeadlineExceeded, "{status:?}");
+    drop(tx);
+    d.submit_ok(&exr, "").await;
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn stalled_tls_handshakes_leave_https_readyz_answering() {
+    let dir = tempfile::tempdir().unwrap();
+    let ca = self_signed(dir.path());
+    let cert = dir.path().join("cert.pem").display().to_string();
+    let key = dir.path().join("key.pem").display().to_string();
+    let p = spawn_daemon(
+        &dir.path().join("data"),
+        &["--tls-cert", &cert, "--tls-key", &key, "--tls-handshake-timeout", "3s"],
+    );
+    let addr: std::net::SocketAddr = authority(&p.http).parse().unwrap();
+    poll("HTTPS /readyz answering 200", Duration::from_secs(60), || async {
+        match https_get(addr, &ca, "/readyz").await {
+            Ok(line) if line == "HTTP/1.1 200 OK" => Ok(()),
+            other => Err(format!("{other:?}")),
+        }
+    })
+    .await;
+
+    // 300 connections that never send a ClientHello (no token needed), and one to gRPC.
+    let mut stalled = Vec::new();
+    for _ in 0..300 {
+        stalled.push(TcpStream::connect(addr).await.unwrap());
+    }
+    let mut grpc = TcpStream::connect(&p.grpc).await.unwrap();
+    let mut slowest = Duration::ZERO;
+    for _ in 0..5 {
+        let t = std::time::Instant::now();
+        assert_eq!(https_get(addr, &ca, "/readyz").await.unwrap(), "HTTP/1.1 200 OK");
+        slowest = slowest.max(t.elapsed());
+    }
+    eprintln!("HTTPS /readyz behind 300 stalled handshakes: slowest of 5 in {slowest:?}");
+    assert!(slowest < Duration::from_secs(1), "{slowest:?}");
+    // The stalled handshakes are dropped at their timeout, on both listeners.
+    let took = wait_closed(&mut grpc, Duration::from_secs(15)).await;
+    eprintln!("stalled gRPC handshake closed after {took:?}");
+    let took = wait_closed(&mut stalled[0], Duration::from_secs(15)).await;
+    eprintln!("stalled HTTPS handshake closed after {took:?}");
+}
+

@@ -7,10 +7,13 @@ mod error;
 pub mod multipart;
 
 use std::convert::Infallible;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::body::Body;
-use axum::extract::connect_info::Connected;
 use axum::extract::{
     ConnectInfo, DefaultBodyLimit, Extension, MatchedPath, Path, Query, Request, State,
 };
@@ -19,7 +22,6 @@ use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use axum::serve::IncomingStream;
 use axum::{Json, Router};
 use futures_util::{Stream, StreamExt};
 use serde::Deserialize;
@@ -93,8 +95,8 @@ fn routes(table: &[(&str, &str)]) -> Router<AppState> {
     router
 }
 
-/// The whole HTTP API. Serve it with `into_make_service_with_connect_info::<Peer>()`:
-/// without authentication, clients are told apart by their address.
+/// The whole HTTP API. Serve it through [`per_peer`]: without authentication, clients are
+/// told apart by their address.
 pub fn router(state: AppState) -> Router {
     let protected = routes(PROTECTED_ROUTES).route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
     routes(OPEN_ROUTES)
@@ -125,21 +127,14 @@ async fn observe(State(app): State<AppState>, request: Request, next: Next) -> R
     response
 }
 
-/// The address of the other end of a connection, plain or TLS (serve the router with
-/// `into_make_service_with_connect_info::<Peer>()`).
+/// The address of the other end of a connection, plain or TLS: a `ConnectInfo<Peer>`
+/// extension on every request (see [`per_peer`]).
 #[derive(Clone, Copy, Debug)]
 pub struct Peer(pub std::net::SocketAddr);
 
-impl Connected<IncomingStream<'_, tokio::net::TcpListener>> for Peer {
-    fn connect_info(stream: IncomingStream<'_, tokio::net::TcpListener>) -> Peer {
-        Peer(*stream.remote_addr())
-    }
-}
-
-impl Connected<IncomingStream<'_, crate::tls::TlsListener>> for Peer {
-    fn connect_info(stream: IncomingStream<'_, crate::tls::TlsListener>) -> Peer {
-        Peer(*stream.remote_addr())
-    }
+/// The router as the service of one connection from `peer` (for [`crate::conn::serve`]).
+pub fn per_peer(router: Router) -> impl Fn(std::net::SocketAddr) -> crate::conn::WithExtension<Router, ConnectInfo<Peer>> {
+    move |peer| crate::conn::WithExtension::new(router.clone(), ConnectInfo(Peer(peer)))
 }
 
 /// Checks the bearer token and records who is calling (a [`ClientId`] extension).
@@ -239,13 +234,72 @@ async fn submit(
     Extension(client): Extension<ClientId>,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let request = request.map(|body| Body::new(DrainOnDrop(Some(body))));
+    let gap = app.service.settings().upload_timeout;
+    let stalled = Arc::new(AtomicBool::new(false));
+    let request = request.map(|body| Body::new(Progress::new(DrainOnDrop(Some(body)), gap, stalled.clone())));
     let service = app.service.clone();
-    let result = submit_inner(app, client, request).await;
+    let mut result = submit_inner(app, client.clone(), request).await;
+    if result.is_err() && stalled.load(Ordering::Acquire) {
+        let message = format!(
+            "no upload bytes arrived for {} (--upload-timeout); the upload was dropped",
+            humantime::format_duration(gap)
+        );
+        tracing::warn!(client = client.as_str(), transport = "http", "upload timed out: {message}");
+        result = Err(Error::Timeout(message).into());
+    }
     if let Err(e) = &result {
         service.note_rejection(&e.0);
     }
     result
+}
+
+/// An upload body that fails when no byte arrives for `gap` (`--upload-timeout`), setting
+/// `stalled`; its handler then answers 408 and drops the upload, releasing its slot.
+struct Progress {
+    inner: DrainOnDrop,
+    gap: Duration,
+    deadline: Pin<Box<tokio::time::Sleep>>,
+    stalled: Arc<AtomicBool>,
+}
+
+impl Progress {
+    fn new(inner: DrainOnDrop, gap: Duration, stalled: Arc<AtomicBool>) -> Progress {
+        Progress { inner, gap, deadline: Box::pin(tokio::time::sleep(gap)), stalled }
+    }
+}
+
+impl http_body::Body for Progress {
+    type Data = bytes::Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<http_body::Frame<bytes::Bytes>, axum::Error>>> {
+        let this = &mut *self;
+        match Pin::new(&mut this.inner).poll_frame(cx) {
+            std::task::Poll::Pending => {
+                if this.deadline.as_mut().poll(cx).is_ready() {
+                    this.stalled.store(true, Ordering::Release);
+                    return std::task::Poll::Ready(Some(Err(axum::Error::new("the upload stalled"))));
+                }
+                std::task::Poll::Pending
+            }
+            ready => {
+                let next = tokio::time::Instant::now() + this.gap;
+                this.deadline.as_mut().reset(next);
+                ready
+            }
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
+    }
 }
 
 async fn submit_inner(app: AppState, client: ClientId, request: Request) -> Result<Response, ApiError> {
@@ -296,7 +350,7 @@ async fn submit_inner(app: AppState, client: ClientId, request: Request) -> Resu
 /// is closed).
 const DRAIN_BYTES: u64 = 64 << 20;
 /// Time given to a client to finish sending after an early answer.
-const DRAIN_TIME: std::time::Duration = std::time::Duration::from_secs(10);
+const DRAIN_TIME: Duration = Duration::from_secs(10);
 
 /// The body of an upload. Dropped before its end (a refusal such as 429, or an error
 /// mid-upload), the rest is read and discarded in the background, up to [`DRAIN_BYTES`] and

@@ -192,6 +192,7 @@ impl JobService {
             Error::ClientLimit { .. } => "client_limit",
             Error::BadRequest(_) | Error::InvalidFrame(_) => "invalid",
             Error::TooLarge(_) => "too_large",
+            Error::Timeout(_) => "timeout",
             Error::Unavailable(_) => "unavailable",
             Error::Storage { full: true, .. } => "storage_full",
             Error::Storage { full: false, .. } => "storage_unavailable",

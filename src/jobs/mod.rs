@@ -111,6 +111,8 @@ pub struct Settings {
     pub default_deadline: Option<Duration>,
     pub limits: Limits,
     pub max_body_bytes: u64,
+    /// The longest gap between two pieces of an upload (`--upload-timeout`).
+    pub upload_timeout: Duration,
     /// Uploads one client may have in flight at once.
     pub max_uploads_per_client: usize,
     /// Unfinished (uploading, queued or running) jobs one client may have.
@@ -137,6 +139,7 @@ impl Settings {
             default_deadline: Some(args.job_deadline).filter(|d| !d.is_zero()),
             limits: args.limits(),
             max_body_bytes: args.max_body_bytes,
+            upload_timeout: args.upload_timeout,
             max_uploads_per_client: args.max_uploads_per_client,
             max_jobs_per_client: args.max_jobs_per_client(),
             workers: args.workers(),
