@@ -336,3 +336,88 @@ async fn stalled_tls_handshakes_leave_https_readyz_answering() {
     eprintln!("stalled HTTPS handshake closed after {took:?}");
 }
 
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_http_error_has_the_json_shape() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let long_id = "x".repeat(60_000);
+    let cases: Vec<(Method, String, u16, &str)> = vec![
+        // The router's own answers: no route, wrong method, a path that is not UTF-8.
+        (Method::GET, "/no/such/route".into(), 404, "not_found"),
+        (Method::PUT, "/v1/jobs".into(), 405, "method_not_allowed"),
+        (Method::POST, "/livez".into(), 405, "method_not_allowed"),
+        (Method::GET, "/v1/jobs/%FF%FE".into(), 400, "bad_request"),
+        // Query strings: not a number, over the documented maximum, an unknown key.
+        (Method::GET, "/v1/jobs?limit=abc".into(), 400, "bad_request"),
+        (Method::GET, "/v1/jobs?limit=1001".into(), 400, "bad_request"),
+        (Method::GET, "/v1/jobs?limit=0".into(), 400, "bad_request"),
+        (Method::GET, "/v1/jobs?colour=red".into(), 400, "bad_request"),
+        // A very long id is not echoed whole.
+        (Method::GET, format!("/v1/jobs/{long_id}"), 404, "not_found"),
+    ];
+    for (method, path, status, code) in cases {
+        let resp = d.http.send(method.clone(), &path, &[], body_bytes(bytes::Bytes::new())).await.unwrap();
+        let short = &path[..path.len().min(40)];
+        assert_eq!(resp.status().as_u16(), status, "{method} {short}");
+        let content_type = resp.headers().get("content-type").map(|v| v.to_str().unwrap().to_string());
+        assert_eq!(content_type.as_deref(), Some("application/json"), "{method} {short}");
+        if status == 405 {
+            assert!(resp.headers().contains_key("allow"), "{method} {short}: 405 keeps its Allow header");
+        }
+        let (_, body) = mcdenoise::client::read_json(resp).await.unwrap();
+        assert_eq!(body["error"]["code"], code, "{method} {short}: {body}");
+        let message = body["error"]["message"].as_str().unwrap();
+        assert!(!message.is_empty() && message.len() < 300, "{method} {short}: {message}");
+    }
+    // In range, `limit` is accepted.
+    let (status, _) = d.get_json("/v1/jobs?limit=1000").await;
+    assert_eq!(status, StatusCode::OK);
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn grpc_refuses_malformed_messages_as_invalid_argument_and_truncates_long_ids() {
+    use mcdenoise::grpc::pb;
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    // A GetJob whose body is not a protobuf message (field 1 declared 100 bytes long, 1 sent).
+    let channel =
+        tonic::transport::Endpoint::from_shared(format!("http://{}", d.grpc)).unwrap().connect().await.unwrap();
+    let status = raw_grpc_call(&channel, &d.grpc, "/mcdenoise.v1.Denoiser/GetJob", &[0x0a, 100, b'x']).await;
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    // A 100 kB id: NOT_FOUND, with the id cut in the message.
+    let mut api = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let status = api.get_job(pb::GetJobRequest { id: "y".repeat(100_000) }).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::NotFound, "{status:?}");
+    assert!(status.message().len() < 300, "{} bytes", status.message().len());
+    assert!(status.message().contains('…'), "{}", status.message());
+    // page_size above the documented 1000.
+    let status = api.list_jobs(pb::ListJobsRequest { page_size: 1001, ..Default::default() }).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+    d.stop().await;
+}
+
+/// Calls `path` with `message` as the (framed) request body; the status of the answer.
+async fn raw_grpc_call(channel: &tonic::transport::Channel, authority: &str, path: &str, message: &[u8]) -> tonic::Status {
+    use http_body_util::BodyExt;
+    use tower::{Service, ServiceExt};
+    let mut framed = vec![0u8];
+    framed.extend_from_slice(&(message.len() as u32).to_be_bytes());
+    framed.extend_from_slice(message);
+    let request = hyper::Request::post(format!("http://{authority}{path}"))
+        .header("content-type", "application/grpc")
+        .header("te", "trailers")
+        .body(tonic::body::Body::new(http_body_util::Full::new(bytes::Bytes::from(framed))))
+        .unwrap();
+    let mut channel = channel.clone();
+    let response = channel.ready().await.unwrap().call(request).await.unwrap();
+    if let Some(status) = tonic::Status::from_header_map(response.headers()) {
+        return status;
+    }
+    let collected = response.into_body().collect().await.unwrap();
+    let trailers = collected.trailers().cloned().unwrap_or_default();
+    tonic::Status::from_header_map(&trailers).expect("a grpc-status")
+}

@@ -364,6 +364,19 @@ where
     }
 }
 
+/// tonic answers a request message that is not valid protobuf with INTERNAL; it is the
+/// client's error, so it becomes INVALID_ARGUMENT (the message is kept).
+fn decode_errors_are_invalid_argument(
+    mut response: axum::http::Response<tonic::body::Body>,
+) -> axum::http::Response<tonic::body::Body> {
+    if let Some(status) = Status::from_header_map(response.headers()) {
+        if status.code() == tonic::Code::Internal && status.message().starts_with("failed to decode Protobuf message") {
+            let _ = Status::invalid_argument(status.message().to_string()).add_header(response.headers_mut());
+        }
+    }
+    response
+}
+
 /// Who is calling: set by [`Auth`] on every API request.
 fn client_of<T>(request: &Request<T>) -> ClientId {
     request.extensions().get::<ClientId>().cloned().unwrap_or_else(|| ClientId::peer(request.remote_addr()))
@@ -437,6 +450,10 @@ pub async fn serve(
         .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
         .add_service(InterceptedService::new(api, auth))
         .prepare();
+    let routes = tower::ServiceExt::<axum::http::Request<hyper::body::Incoming>>::map_response(
+        routes,
+        decode_errors_are_invalid_argument as fn(axum::http::Response<tonic::body::Body>) -> _,
+    );
     let local = listener.local_addr().ok();
     // What tonic's own server would record: `Request::remote_addr` reads it.
     let per_peer = move |peer| {

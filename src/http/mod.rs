@@ -104,8 +104,45 @@ pub fn router(state: AppState) -> Router {
         .fallback(|| async { ApiError::from(Error::NotFound("no such route".into())) })
         // Uploads are streamed to disk and limited by `--max-body-bytes` as they arrive.
         .layer(DefaultBodyLimit::disable())
+        .layer(middleware::from_fn(json_errors))
         .layer(middleware::from_fn_with_state(state.clone(), observe))
         .with_state(state)
+}
+
+/// Gives every error answer the JSON shape of [`ApiError`], including those the router
+/// and axum's extractors write as plain text (405, a path that is not UTF-8, a bad query):
+/// their status and headers (`Allow`) are kept, their text becomes the message.
+async fn json_errors(request: Request, next: Next) -> Response {
+    let (method, path) = (request.method().clone(), request.uri().path().to_owned());
+    let response = next.run(request).await;
+    let status = response.status();
+    let is_json = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if status.as_u16() < 400 || is_json {
+        return response;
+    }
+    let (mut parts, body) = response.into_parts();
+    let text = axum::body::to_bytes(body, 4096).await.map(|b| String::from_utf8_lossy(&b).trim().to_string());
+    let path = crate::error::truncate(&path, crate::error::ECHO_CHARS);
+    let (code, message) = match status {
+        StatusCode::METHOD_NOT_ALLOWED => {
+            let allowed = parts.headers.get(header::ALLOW).and_then(|v| v.to_str().ok()).unwrap_or("");
+            ("method_not_allowed", format!("{method} is not allowed on {path} (allowed: {allowed})"))
+        }
+        StatusCode::NOT_FOUND => ("not_found", format!("no route {method} {path}")),
+        _ => {
+            let code = if status.is_client_error() { "bad_request" } else { "internal" };
+            let text = text.ok().filter(|t| !t.is_empty());
+            let text = text.unwrap_or_else(|| status.canonical_reason().unwrap_or("error").to_string());
+            (code, crate::error::truncate(&text, 256).into_owned())
+        }
+    };
+    let body = serde_json::to_vec(&json!({ "error": { "code": code, "message": message } })).unwrap_or_default();
+    parts.headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/json"));
+    parts.headers.remove(header::CONTENT_LENGTH);
+    Response::from_parts(parts, Body::from(body))
 }
 
 /// Logs each request and counts it by route template and status.
@@ -476,7 +513,7 @@ async fn submit_multipart(
             other => {
                 return Err(Error::BadRequest(format!(
                     "unknown multipart part `{}` (expected options, frame, reference)",
-                    multipart::truncate(other, 64)
+                    crate::error::truncate(other, crate::error::ECHO_CHARS)
                 ))
                 .into())
             }

@@ -245,7 +245,7 @@ fn parse_head(block: &[u8]) -> Result<PartHead, FormError> {
     let mut head = PartHead::default();
     for line in text.split("\r\n").filter(|_| !block.is_empty()) {
         let Some((key, value)) = line.split_once(':') else {
-            return Err(FormError::Malformed(format!("a part header without a colon: `{}`", truncate(line, 64))));
+            return Err(FormError::Malformed(format!("a part header without a colon: `{}`", crate::error::truncate(line, 64))));
         };
         if key.trim().eq_ignore_ascii_case("content-disposition") {
             head.name = disposition_name(value);
@@ -290,14 +290,6 @@ fn split_params(value: &str) -> Vec<&str> {
     }
     out.push(&value[start..]);
     out
-}
-
-/// At most `max` characters of `s`, with `…` when cut.
-pub fn truncate(s: &str, max: usize) -> String {
-    match s.char_indices().nth(max) {
-        None => s.to_string(),
-        Some((at, _)) => format!("{}…", &s[..at]),
-    }
 }
 
 #[cfg(test)]
@@ -391,6 +383,7 @@ mod tests {
         assert_eq!(boundary("Multipart/Form-Data; charset=x; Boundary=\"a b\"").as_deref(), Some("a b"));
         assert_eq!(boundary("multipart/form-data"), None);
         assert_eq!(boundary("multipart/mixed; boundary=abc"), None);
+        use crate::error::truncate;
         assert_eq!(truncate("abcdef", 3), "abc…");
         assert_eq!(truncate("abc", 3), "abc");
         assert_eq!(truncate("ééé", 2), "éé…");

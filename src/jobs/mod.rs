@@ -232,7 +232,7 @@ fn lock_poisoned<T>(e: PoisonError<T>) -> T {
 }
 
 fn not_found(id: &str) -> Error {
-    Error::NotFound(format!("no job {id}"))
+    Error::NotFound(format!("no job {}", crate::error::truncate(id, crate::error::ECHO_CHARS)))
 }
 
 impl JobService {
