@@ -44,6 +44,38 @@ pub struct Timeouts {
     pub keepalive_timeout: Duration,
 }
 
+type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+/// The service of one connection: HTTP requests in, responses with a [`ConnBody`] out.
+pub trait ConnService<B>:
+    tower::Service<
+        axum::http::Request<Incoming>,
+        Response = axum::http::Response<B>,
+        Error: Into<BoxError>,
+        Future: Send + 'static,
+    > + Clone
+    + Send
+    + 'static
+{
+}
+
+impl<S, B> ConnService<B> for S where
+    S: tower::Service<
+            axum::http::Request<Incoming>,
+            Response = axum::http::Response<B>,
+            Error: Into<BoxError>,
+            Future: Send + 'static,
+        > + Clone
+        + Send
+        + 'static
+{
+}
+
+/// A response body a connection can send.
+pub trait ConnBody: http_body::Body<Data: Send, Error: Into<BoxError>> + Send + 'static {}
+
+impl<B> ConnBody for B where B: http_body::Body<Data: Send, Error: Into<BoxError>> + Send + 'static {}
+
 /// Which protocols a listener speaks.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Protocols {
@@ -65,12 +97,8 @@ pub async fn serve<F, S, B>(
 ) -> std::io::Result<()>
 where
     F: Fn(SocketAddr) -> S,
-    S: tower::Service<axum::http::Request<Incoming>, Response = axum::http::Response<B>> + Clone + Send + 'static,
-    S::Future: Send + 'static,
-    S::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
-    B: http_body::Body + Send + 'static,
-    B::Data: Send,
-    B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
+    S: ConnService<B>,
+    B: ConnBody,
 {
     let mut builder = Builder::new(TokioExecutor::new());
     builder.http1().timer(TokioTimer::new()).header_read_timeout(timeouts.header).keep_alive(true);
@@ -137,12 +165,8 @@ async fn connection<I, S, B>(
     shutdown: &CancellationToken,
 ) where
     I: AsyncRead + AsyncWrite + Unpin + Send + 'static,
-    S: tower::Service<axum::http::Request<Incoming>, Response = axum::http::Response<B>> + Clone + Send + 'static,
-    S::Future: Send + 'static,
-    S::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
-    B: http_body::Body + Send + 'static,
-    B::Data: Send,
-    B::Error: Into<Box<dyn std::error::Error + Send + Sync>>,
+    S: ConnService<B>,
+    B: ConnBody,
 {
     let conn = builder.serve_connection_with_upgrades(TokioIo::new(io), service);
     tokio::pin!(conn);

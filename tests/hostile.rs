@@ -299,13 +299,10 @@ async fn a_stalled_grpc_upload_gets_deadline_exceeded_and_frees_its_slot() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn stalled_tls_handshakes_leave_https_readyz_answering() {
     let dir = tempfile::tempdir().unwrap();
-    let ca = self_signed(dir.path());
-    let cert = dir.path().join("cert.pem").display().to_string();
-    let key = dir.path().join("key.pem").display().to_string();
-    let p = spawn_daemon(
-        &dir.path().join("data"),
-        &["--tls-cert", &cert, "--tls-key", &key, "--tls-handshake-timeout", "3s"],
-    );
+    let (ca, mut flags) = tls_flags(dir.path());
+    flags.extend(["--tls-handshake-timeout".to_string(), "3s".to_string()]);
+    let flags: Vec<&str> = flags.iter().map(String::as_str).collect();
+    let p = spawn_daemon(&dir.path().join("data"), &flags);
     let addr: std::net::SocketAddr = authority(&p.http).parse().unwrap();
     poll("HTTPS /readyz answering 200", Duration::from_secs(60), || async {
         match https_get(addr, &ca, "/readyz").await {

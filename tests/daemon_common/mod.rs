@@ -356,6 +356,13 @@ pub fn walk(dir: &Path) -> Vec<PathBuf> {
 
 /// A self-signed certificate for `localhost`, written as PEM files; returns the
 /// certificate's PEM.
+/// A self-signed certificate in `dir` and the daemon flags that serve it: (CA PEM, flags).
+pub fn tls_flags(dir: &std::path::Path) -> (String, Vec<String>) {
+    let ca = self_signed(dir);
+    let file = |name: &str| dir.join(name).display().to_string();
+    (ca, vec!["--tls-cert".into(), file("cert.pem"), "--tls-key".into(), file("key.pem")])
+}
+
 pub fn self_signed(dir: &std::path::Path) -> String {
     let key = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
     std::fs::write(dir.join("cert.pem"), key.cert.pem()).unwrap();
