@@ -418,3 +418,41 @@ async fn raw_grpc_call(channel: &tonic::transport::Channel, authority: &str, pat
     let trailers = collected.trailers().cloned().unwrap_or_default();
     tonic::Status::from_header_map(&trailers).expect("a grpc-status")
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_second_client_reusing_a_key_gets_its_own_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start_with_token(dir.path(), &["--auth-token", "farm-a,farm-b"], Some("farm-a")).await;
+    d.ready().await;
+    let b = HttpClient::new(&d.base, Some("farm-b"));
+    let submit = |client: &HttpClient, exr: Vec<u8>| {
+        let client = client.clone();
+        async move {
+            let headers = [("content-type", "image/x-exr"), ("idempotency-key", "f0001")];
+            let resp = client.send(Method::POST, "/v1/jobs", &headers, body_bytes(exr)).await.unwrap();
+            let replayed = resp.headers().contains_key("idempotent-replayed");
+            let (status, job) = mcdenoise::client::read_json(resp).await.unwrap();
+            assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+            (job["id"].as_str().unwrap().to_string(), job["width"].as_u64().unwrap(), replayed)
+        }
+    };
+    // Two shots both name their frame f0001.
+    let (a_id, a_width, replayed) = submit(&d.http, frame(16, 16)).await;
+    assert!(!replayed);
+    let (b_id, b_width, replayed) = submit(&b, frame(32, 16)).await;
+    assert!(!replayed, "the second client's frame was answered with the first client's job");
+    assert_ne!(a_id, b_id);
+    assert_eq!((a_width, b_width), (16, 32), "each job holds its own client's frame");
+    // Within one client, the key still replays.
+    let (again, _, replayed) = submit(&d.http, frame(16, 16)).await;
+    assert_eq!(again, a_id);
+    assert!(replayed);
+    // And after a restart.
+    d.stop().await;
+    let d = start_with_token(dir.path(), &["--auth-token", "farm-a,farm-b"], Some("farm-a")).await;
+    d.ready().await;
+    let b = HttpClient::new(&d.base, Some("farm-b"));
+    let (again, _, replayed) = submit(&b, frame(32, 16)).await;
+    assert_eq!((again.as_str(), replayed), (b_id.as_str(), true));
+    d.stop().await;
+}

@@ -15,7 +15,7 @@
 use std::time::Duration;
 
 use super::uploads::Ticket;
-use super::{Entry, JobService, State};
+use super::{scoped_key, Entry, JobService, State};
 use crate::auth::ClientId;
 use crate::error::{Error, Result};
 use crate::jobs::{JobEvent, JobOptions, JobRecord, JobState, JobStatus, Phase, Progress};
@@ -128,13 +128,14 @@ impl JobService {
                 return Err(Error::BadRequest(format!("no `{v}` model is loaded (loaded: {})", loaded.join(", "))));
             }
         }
-        if let Some(key) = &options.idempotency_key {
-            if let Some(id) = st.keys.get(key) {
+        let scoped = options.idempotency_key.as_deref().map(|k| scoped_key(Some(client.as_str()), k));
+        if let (Some(key), Some(scoped)) = (&options.idempotency_key, &scoped) {
+            if let Some(id) = st.keys.get(scoped) {
                 if let Some(entry) = st.jobs.get(id) {
                     return Ok(Admission::Existing(self.status_of(&st, entry)));
                 }
             }
-            if st.uploading.contains(key) {
+            if st.uploading.contains(scoped) {
                 return Err(Error::InProgress(format!(
                     "a submission with idempotency key `{key}` is still being uploaded; retry when it completes"
                 )));
@@ -144,8 +145,8 @@ impl JobService {
             Some(slot) => slot,
             None => self.take_slot(&mut st, client)?,
         };
-        if let Some(key) = &options.idempotency_key {
-            st.uploading.insert(key.clone());
+        if let Some(scoped) = scoped {
+            st.uploading.insert(scoped);
         }
         drop(st);
         let id = uuid::Uuid::now_v7().to_string();
@@ -250,8 +251,9 @@ impl JobService {
         let mut st = self.lock();
         ticket.slot().release_in(&mut st);
         if let Some(key) = &record.options.idempotency_key {
-            st.uploading.remove(key);
-            st.keys.insert(key.clone(), record.id.clone());
+            let scoped = scoped_key(record.client.as_deref(), key);
+            st.uploading.remove(&scoped);
+            st.keys.insert(scoped, record.id.clone());
         }
         st.queue.push(record.options.priority, record.seq, record.id.clone());
         let id = record.id.clone();
@@ -270,7 +272,7 @@ impl JobService {
         let mut st = self.lock();
         slot.release_in(&mut st);
         if let Some(key) = key {
-            st.uploading.remove(key);
+            st.uploading.remove(&scoped_key(Some(slot.client().as_str()), key));
         }
     }
 }

@@ -179,9 +179,9 @@ struct State {
     queue: Queue,
     /// Admissions whose upload is in progress; they count against the capacity.
     reserved: usize,
-    /// Idempotency keys of committed jobs.
+    /// Idempotency keys of committed jobs, each scoped to its client ([`scoped_key`]).
     keys: HashMap<String, String>,
-    /// Idempotency keys of uploads in progress.
+    /// Idempotency keys of uploads in progress, scoped the same way.
     uploading: HashSet<String>,
     /// Uploads in progress per client.
     uploads: HashMap<ClientId, usize>,
@@ -229,6 +229,14 @@ struct Journal<'a>(#[allow(dead_code)] MutexGuard<'a, ()>);
 
 fn lock_poisoned<T>(e: PoisonError<T>) -> T {
     e.into_inner()
+}
+
+/// An idempotency key as [`State`] holds it: scoped to the client that sent it, so one
+/// client's key never answers for another's frame (two shots that both name a frame
+/// `f0001`). Keys are visible ASCII and client ids have no space, so the space separates
+/// them unambiguously.
+fn scoped_key(client: Option<&str>, key: &str) -> String {
+    format!("{} {key}", client.unwrap_or(""))
 }
 
 fn not_found(id: &str) -> Error {
