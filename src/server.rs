@@ -92,7 +92,8 @@ impl Server {
             crate::http::per_peer(crate::http::router(state)),
             stop.clone(),
         ));
-        let grpc_task = tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, tls.clone(), timeouts, stop.clone()));
+        let grpc_task =
+            tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, tls.clone(), timeouts, stop.clone()));
         let janitor = tokio::spawn(janitor(service.clone(), args.janitor_interval, stop.clone()));
         let storage = tokio::spawn(storage_checks(service.clone(), args.storage_check_interval, stop.clone()));
         tracing::info!(http = %http_addr, grpc = %grpc_addr, tls = tls.is_some(), "listening");

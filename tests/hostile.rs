@@ -241,7 +241,8 @@ async fn half_headers_idle_connections_and_stalled_uploads_are_closed_within_the
     assert_eq!(status, 408, "{err}");
     assert_eq!(err["error"]["code"], "timeout", "{err}");
     assert!(err["error"]["message"].as_str().unwrap().contains("--upload-timeout"), "{err}");
-    for (what, conn) in [("half a header", &mut half), ("an idle connection", &mut idle), ("a gRPC preface", &mut preface)]
+    for (what, conn) in
+        [("half a header", &mut half), ("an idle connection", &mut idle), ("a gRPC preface", &mut preface)]
     {
         wait_closed(conn, limit).await;
         eprintln!("{what}: closed after {:?}", t.elapsed());
@@ -283,13 +284,11 @@ async fn a_stalled_grpc_upload_gets_deadline_exceeded_and_frees_its_slot() {
     };
     let (tx, rx) = tokio::sync::mpsc::channel(4);
     tx.send(header).await.unwrap();
-    let status = tokio::time::timeout(
-        Duration::from_secs(15),
-        api.submit_job(tokio_stream::wrappers::ReceiverStream::new(rx)),
-    )
-    .await
-    .expect("an answer")
-    .unwrap_err();
+    let status =
+        tokio::time::timeout(Duration::from_secs(15), api.submit_job(tokio_stream::wrappers::ReceiverStream::new(rx)))
+            .await
+            .expect("an answer")
+            .unwrap_err();
     assert_eq!(status.code(), tonic::Code::DeadlineExceeded, "{status:?}");
     drop(tx);
     d.submit_ok(&exr, "").await;
@@ -332,7 +331,6 @@ async fn stalled_tls_handshakes_leave_https_readyz_answering() {
     let took = wait_closed(&mut stalled[0], Duration::from_secs(15)).await;
     eprintln!("stalled HTTPS handshake closed after {took:?}");
 }
-
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_http_error_has_the_json_shape() {
@@ -398,7 +396,12 @@ async fn grpc_refuses_malformed_messages_as_invalid_argument_and_truncates_long_
 }
 
 /// Calls `path` with `message` as the (framed) request body; the status of the answer.
-async fn raw_grpc_call(channel: &tonic::transport::Channel, authority: &str, path: &str, message: &[u8]) -> tonic::Status {
+async fn raw_grpc_call(
+    channel: &tonic::transport::Channel,
+    authority: &str,
+    path: &str,
+    message: &[u8],
+) -> tonic::Status {
     use http_body_util::BodyExt;
     use tower::{Service, ServiceExt};
     let mut framed = vec![0u8];

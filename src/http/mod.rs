@@ -14,9 +14,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::body::Body;
-use axum::extract::{
-    ConnectInfo, DefaultBodyLimit, Extension, MatchedPath, Path, Query, Request, State,
-};
+use axum::extract::{ConnectInfo, DefaultBodyLimit, Extension, MatchedPath, Path, Query, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -116,10 +114,8 @@ async fn json_errors(request: Request, next: Next) -> Response {
     let (method, path) = (request.method().clone(), request.uri().path().to_owned());
     let response = next.run(request).await;
     let status = response.status();
-    let is_json = response
-        .headers()
-        .get(header::CONTENT_TYPE)
-        .is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    let is_json =
+        response.headers().get(header::CONTENT_TYPE).is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
     if status.as_u16() < 400 || is_json {
         return response;
     }
@@ -170,7 +166,9 @@ async fn observe(State(app): State<AppState>, request: Request, next: Next) -> R
 pub struct Peer(pub std::net::SocketAddr);
 
 /// The router as the service of one connection from `peer` (for [`crate::conn::serve`]).
-pub fn per_peer(router: Router) -> impl Fn(std::net::SocketAddr) -> crate::conn::WithExtension<Router, ConnectInfo<Peer>> {
+pub fn per_peer(
+    router: Router,
+) -> impl Fn(std::net::SocketAddr) -> crate::conn::WithExtension<Router, ConnectInfo<Peer>> {
     move |peer| crate::conn::WithExtension::new(router.clone(), ConnectInfo(Peer(peer)))
 }
 

@@ -245,7 +245,10 @@ fn parse_head(block: &[u8]) -> Result<PartHead, FormError> {
     let mut head = PartHead::default();
     for line in text.split("\r\n").filter(|_| !block.is_empty()) {
         let Some((key, value)) = line.split_once(':') else {
-            return Err(FormError::Malformed(format!("a part header without a colon: `{}`", crate::error::truncate(line, 64))));
+            return Err(FormError::Malformed(format!(
+                "a part header without a colon: `{}`",
+                crate::error::truncate(line, 64)
+            )));
         };
         if key.trim().eq_ignore_ascii_case("content-disposition") {
             head.name = disposition_name(value);
