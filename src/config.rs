@@ -176,6 +176,33 @@ pub struct ServeArgs {
     #[arg(long, env = "MCDENOISE_TLS_KEY", requires = "tls_cert", help_heading = "Security")]
     pub tls_key: Option<PathBuf>,
 
+    // --- Connections -------------------------------------------------------------------
+    /// A TLS handshake not finished by then is dropped (each runs in its connection's own
+    /// task: stalled handshakes hold up no one else).
+    #[arg(long, env = "MCDENOISE_TLS_HANDSHAKE_TIMEOUT", default_value = "10s", value_parser = parse_duration, help_heading = "Connections")]
+    pub tls_handshake_timeout: Duration,
+    /// An HTTP/1 request head not complete by then closes the connection. Counted from
+    /// when the connection is ready for a request, so it also closes idle HTTP/1
+    /// keep-alive connections (a new connection that never sends a byte is closed by
+    /// --idle-timeout).
+    #[arg(long, env = "MCDENOISE_HEADER_TIMEOUT", default_value = "30s", value_parser = parse_duration, help_heading = "Connections")]
+    pub header_timeout: Duration,
+    /// A connection (HTTP/1, HTTP/2 or gRPC) that reads and writes nothing for this long
+    /// is asked to close (requests in flight finish), and dropped after as long again.
+    #[arg(long, env = "MCDENOISE_IDLE_TIMEOUT", default_value = "60s", value_parser = parse_duration, help_heading = "Connections")]
+    pub idle_timeout: Duration,
+    /// HTTP/2 and gRPC connections are sent a PING this often...
+    #[arg(long, env = "MCDENOISE_KEEPALIVE_INTERVAL", default_value = "30s", value_parser = parse_duration, help_heading = "Connections")]
+    pub keepalive_interval: Duration,
+    /// ...and closed when it is not answered within this.
+    #[arg(long, env = "MCDENOISE_KEEPALIVE_TIMEOUT", default_value = "20s", value_parser = parse_duration, help_heading = "Connections")]
+    pub keepalive_timeout: Duration,
+    /// An upload (HTTP body or gRPC stream) that sends no byte for this long is refused
+    /// with 408 / DEADLINE_EXCEEDED (`timeout`): its client slot and idempotency key are
+    /// released.
+    #[arg(long, env = "MCDENOISE_UPLOAD_TIMEOUT", default_value = "30s", value_parser = parse_duration, help_heading = "Connections")]
+    pub upload_timeout: Duration,
+
     // --- Operations --------------------------------------------------------------------
     /// Log format.
     #[arg(long, env = "MCDENOISE_LOG_FORMAT", value_enum, default_value_t, help_heading = "Operations")]
@@ -215,6 +242,17 @@ impl ServeArgs {
         self.max_jobs_per_client.unwrap_or(usize::MAX)
     }
 
+    /// The time limits of both listeners' connections.
+    pub fn timeouts(&self) -> crate::conn::Timeouts {
+        crate::conn::Timeouts {
+            tls_handshake: self.tls_handshake_timeout,
+            header: self.header_timeout,
+            idle: self.idle_timeout,
+            keepalive_interval: self.keepalive_interval,
+            keepalive_timeout: self.keepalive_timeout,
+        }
+    }
+
     pub fn limits(&self) -> Limits {
         Limits { max_pixels: self.max_pixels }
     }
@@ -235,6 +273,18 @@ impl ServeArgs {
         }
         if self.storage_check_interval.is_zero() {
             bail!("--storage-check-interval must be positive");
+        }
+        for (flag, d) in [
+            ("--tls-handshake-timeout", self.tls_handshake_timeout),
+            ("--header-timeout", self.header_timeout),
+            ("--idle-timeout", self.idle_timeout),
+            ("--keepalive-interval", self.keepalive_interval),
+            ("--keepalive-timeout", self.keepalive_timeout),
+            ("--upload-timeout", self.upload_timeout),
+        ] {
+            if d.is_zero() {
+                bail!("{flag} must be positive");
+            }
         }
         Ok(())
     }
@@ -261,6 +311,14 @@ impl ServeArgs {
             "max_uploads_per_client": self.max_uploads_per_client,
             "max_jobs_per_client": self.max_jobs_per_client,
             "tls": self.tls_cert.is_some(),
+            "timeouts": {
+                "tls_handshake": humantime::format_duration(self.tls_handshake_timeout).to_string(),
+                "header": humantime::format_duration(self.header_timeout).to_string(),
+                "idle": humantime::format_duration(self.idle_timeout).to_string(),
+                "keepalive_interval": humantime::format_duration(self.keepalive_interval).to_string(),
+                "keepalive_timeout": humantime::format_duration(self.keepalive_timeout).to_string(),
+                "upload": humantime::format_duration(self.upload_timeout).to_string(),
+            },
             "auth": if self.auth_tokens.is_empty() { "off".to_string() } else { format!("{} token(s)", self.auth_tokens.len()) },
             "log_format": self.log_format,
             "shutdown_timeout": humantime::format_duration(self.shutdown_timeout).to_string(),
@@ -358,6 +416,10 @@ mod tests {
         assert_eq!(a.result_ttl, Duration::from_secs(86400));
         assert!(a.auth_tokens.is_empty());
         assert_eq!(a.fireflies.settings(), Fireflies::default());
+        // Timeouts a farm can live with: none above a minute.
+        for d in [a.tls_handshake_timeout, a.header_timeout, a.idle_timeout, a.keepalive_interval, a.upload_timeout] {
+            assert!(!d.is_zero() && d <= Duration::from_secs(60), "{d:?}");
+        }
     }
 
     #[test]

@@ -9,6 +9,7 @@
 //! | `BadRequest` | 400 | INVALID_ARGUMENT |
 //! | `InvalidFrame` | 422 | INVALID_ARGUMENT |
 //! | `TooLarge` | 413 | INVALID_ARGUMENT |
+//! | `Timeout` | 408 | DEADLINE_EXCEEDED |
 //! | `Unauthenticated` | 401 | UNAUTHENTICATED |
 //! | `NotFound` | 404 | NOT_FOUND |
 //! | `Conflict` | 409 | FAILED_PRECONDITION |
@@ -33,6 +34,9 @@ pub enum Error {
     /// Body or frame over a configured limit.
     #[error("{0}")]
     TooLarge(String),
+    /// An upload stopped sending for longer than `--upload-timeout`.
+    #[error("{0}")]
+    Timeout(String),
     #[error("{0}")]
     Unauthenticated(String),
     #[error("{0}")]
@@ -71,6 +75,7 @@ impl Error {
             Error::BadRequest(_) => "bad_request",
             Error::InvalidFrame(_) => "invalid_frame",
             Error::TooLarge(_) => "too_large",
+            Error::Timeout(_) => "timeout",
             Error::Unauthenticated(_) => "unauthenticated",
             Error::NotFound(_) => "not_found",
             Error::Conflict(_) => "conflict",
@@ -128,6 +133,18 @@ impl Error {
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// At most `max` characters of `s`, with `…` when cut: for client-supplied strings (job
+/// ids, page tokens, part names) echoed in error messages.
+pub fn truncate(s: &str, max: usize) -> std::borrow::Cow<'_, str> {
+    match s.char_indices().nth(max) {
+        None => s.into(),
+        Some((at, _)) => format!("{}…", &s[..at]).into(),
+    }
+}
+
+/// How much of a client-supplied string an error message echoes.
+pub const ECHO_CHARS: usize = 64;
 
 /// The message of a caught panic.
 pub fn panic_message(panic: &(dyn std::any::Any + Send)) -> String {

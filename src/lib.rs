@@ -18,7 +18,7 @@
 //!   (logs and Prometheus metrics), [`error`] (one error type, two mappings), [`client`]
 //!   (`mcdenoise submit`), [`wire`] (the job's typed wire forms and their
 //!   protobuf conversions), [`auth`] (bearer tokens, client identity), [`tls`] (rustls
-//!   for both listeners).
+//!   for both listeners), [`conn`] (every connection in its own task, with its timeouts).
 //!
 //! [`atomic`] writes every file the crate writes (temporary name, fsync, rename).
 //!
@@ -29,6 +29,7 @@ pub mod auth;
 pub mod cli;
 pub mod client;
 pub mod config;
+pub mod conn;
 pub mod engine;
 pub mod error;
 pub mod frame;

@@ -13,8 +13,6 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use std::future::IntoFuture;
-
 use anyhow::Context;
 use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
@@ -85,19 +83,17 @@ impl Server {
         let stop = CancellationToken::new();
         let tokens = Arc::new(crate::auth::Tokens::new(&args.auth_tokens));
         let state = crate::http::AppState { service: service.clone(), tokens: tokens.clone(), shutdown: stop.clone() };
-        let app = crate::http::router(state).into_make_service_with_connect_info::<crate::http::Peer>();
-        let http_task = match &tls {
-            None => tokio::spawn(
-                axum::serve(http, app).with_graceful_shutdown(stop.clone().cancelled_owned()).into_future(),
-            ),
-            Some(tls) => {
-                let listener = crate::tls::TlsListener::new(http, tls.http.clone())?;
-                tokio::spawn(
-                    axum::serve(listener, app).with_graceful_shutdown(stop.clone().cancelled_owned()).into_future(),
-                )
-            }
-        };
-        let grpc_task = tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, tls.clone(), stop.clone()));
+        let timeouts = args.timeouts();
+        let http_task = tokio::spawn(crate::conn::serve(
+            http,
+            tls.as_ref().map(|t| t.http.clone()),
+            crate::conn::Protocols::Http,
+            timeouts,
+            crate::http::per_peer(crate::http::router(state)),
+            stop.clone(),
+        ));
+        let grpc_task =
+            tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, tls.clone(), timeouts, stop.clone()));
         let janitor = tokio::spawn(janitor(service.clone(), args.janitor_interval, stop.clone()));
         let storage = tokio::spawn(storage_checks(service.clone(), args.storage_check_interval, stop.clone()));
         tracing::info!(http = %http_addr, grpc = %grpc_addr, tls = tls.is_some(), "listening");

@@ -51,11 +51,12 @@ pub const STAGES: [&str; 7] = ["queue", "decode", "preprocess", "inference", "re
 /// Terminal outcomes (`mcdenoise_jobs_finished_total{outcome}`).
 pub const OUTCOMES: [&str; 3] = ["succeeded", "failed", "cancelled"];
 /// Why a submission was refused (`mcdenoise_jobs_rejected_total{reason}`).
-pub const REJECTIONS: [&str; 9] = [
+pub const REJECTIONS: [&str; 10] = [
     "queue_full",
     "client_limit",
     "invalid",
     "too_large",
+    "timeout",
     "unavailable",
     "storage_full",
     "storage_unavailable",
@@ -73,6 +74,7 @@ pub struct Telemetry {
     jobs_rejected: Family<Labels, Counter>,
     jobs_interrupted: Counter,
     jobs_in_flight: Gauge,
+    uploads_in_progress: Gauge,
     stage_seconds: Family<Labels, Histogram, fn() -> Histogram>,
     bytes_received: Family<Labels, Counter>,
     bytes_sent: Family<Labels, Counter>,
@@ -120,6 +122,7 @@ impl Telemetry {
             jobs_rejected: Family::default(),
             jobs_interrupted: Counter::default(),
             jobs_in_flight: Gauge::default(),
+            uploads_in_progress: Gauge::default(),
             stage_seconds: Family::new_with_constructor(stage_histogram),
             bytes_received: Family::default(),
             bytes_sent: Family::default(),
@@ -152,6 +155,11 @@ impl Telemetry {
             t.jobs_interrupted.clone(),
         );
         registry.register("jobs_in_flight", "Jobs being denoised now", t.jobs_in_flight.clone());
+        registry.register(
+            "uploads_in_progress",
+            "Submissions whose frame is being received (each holds a place in the queue capacity)",
+            t.uploads_in_progress.clone(),
+        );
         registry.register(
             "stage_duration_seconds",
             "Time per job and stage (queue wait, decode, preprocess, inference, reconstruction, encode, total)",
@@ -285,6 +293,10 @@ impl Telemetry {
 
     pub fn set_in_flight(&self, n: usize) {
         self.jobs_in_flight.set(n as i64);
+    }
+
+    pub fn set_uploads(&self, n: usize) {
+        self.uploads_in_progress.set(n as i64);
     }
 
     pub fn observe_stage(&self, stage: &str, ms: f64) {

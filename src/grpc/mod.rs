@@ -8,7 +8,10 @@ use futures_util::stream::{BoxStream, StreamExt};
 use tokio_util::sync::CancellationToken;
 use tonic::metadata::MetadataValue;
 use tonic::service::interceptor::InterceptedService;
+use tonic::transport::server::TcpConnectInfo;
 use tonic::{Request, Response, Status, Streaming};
+
+use crate::conn::Protocols;
 
 use crate::auth::{ClientId, Tokens};
 use crate::error::Error;
@@ -37,6 +40,7 @@ pub fn status(e: &Error) -> Status {
     let message = e.to_string();
     match e {
         Error::BadRequest(_) | Error::InvalidFrame(_) | Error::TooLarge(_) => Status::invalid_argument(message),
+        Error::Timeout(_) => Status::deadline_exceeded(message),
         Error::Unauthenticated(_) => Status::unauthenticated(message),
         Error::NotFound(_) => Status::not_found(message),
         Error::Conflict(_) => Status::failed_precondition(message),
@@ -148,6 +152,9 @@ impl Denoiser for Api {
         let client = client_of(&request);
         let result = submit_upload(&self.service, &client, request.into_inner()).await;
         if let Err(e) = &result {
+            if let Error::Timeout(m) = e {
+                tracing::warn!(client = client.as_str(), transport = "grpc", "upload timed out: {m}");
+            }
             self.service.note_rejection(e);
         }
         self.observe("SubmitJob", result.map(Response::new).map_err(|e| status(&e)))
@@ -254,8 +261,8 @@ where
     S: futures_util::Stream<Item = Result<pb::SubmitJobRequest, Status>> + Unpin,
 {
     use pb::submit_job_request::Message;
-    let first =
-        stream.next().await.transpose().map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
+    let gap = service.settings().upload_timeout;
+    let first = next_message(&mut stream, gap).await?;
     let header = match first.and_then(|m| m.message) {
         Some(Message::Header(h)) => h,
         Some(Message::Chunk(_)) => {
@@ -280,11 +287,7 @@ where
     let mut current = 0usize;
     let mut sink = Some(ticket.sink(UploadPart::Frame).await?);
     loop {
-        let msg = stream
-            .next()
-            .await
-            .transpose()
-            .map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message())))?;
+        let msg = next_message(&mut stream, gap).await?;
         let Some(msg) = msg else { break };
         let chunk = match msg.message {
             Some(Message::Chunk(c)) => c,
@@ -337,13 +340,41 @@ where
             part.name()
         )));
     }
-    if let Some(extra) = stream.next().await.transpose().map_err(|s| Error::BadRequest(s.message().to_string()))? {
+    if let Some(extra) = next_message(&mut stream, gap).await? {
         if extra.message.is_some() {
             return Err(Error::BadRequest("more data than the sizes declared in the header".into()));
         }
     }
     let status = ticket.commit().await?;
     Ok(pb::Job::from(&status))
+}
+
+/// The next message of an upload; one that takes longer than `gap` (`--upload-timeout`)
+/// to come fails the upload.
+async fn next_message<S>(stream: &mut S, gap: std::time::Duration) -> Result<Option<pb::SubmitJobRequest>, Error>
+where
+    S: futures_util::Stream<Item = Result<pb::SubmitJobRequest, Status>> + Unpin,
+{
+    match tokio::time::timeout(gap, stream.next()).await {
+        Err(_) => Err(Error::Timeout(format!(
+            "no upload message arrived for {} (--upload-timeout); the upload was dropped",
+            humantime::format_duration(gap)
+        ))),
+        Ok(m) => m.transpose().map_err(|s| Error::BadRequest(format!("upload stream: {}", s.message()))),
+    }
+}
+
+/// tonic answers a request message that is not valid protobuf with INTERNAL; it is the
+/// client's error, so it becomes INVALID_ARGUMENT (the message is kept).
+fn decode_errors_are_invalid_argument(
+    mut response: axum::http::Response<tonic::body::Body>,
+) -> axum::http::Response<tonic::body::Body> {
+    if let Some(status) = Status::from_header_map(response.headers()) {
+        if status.code() == tonic::Code::Internal && status.message().starts_with("failed to decode Protobuf message") {
+            let _ = Status::invalid_argument(status.message().to_string()).add_header(response.headers_mut());
+        }
+    }
+    response
 }
 
 /// Who is calling: set by [`Auth`] on every API request.
@@ -376,6 +407,7 @@ pub async fn serve(
     service: JobService,
     tokens: Arc<Tokens>,
     tls: Option<crate::tls::Tls>,
+    timeouts: crate::conn::Timeouts,
     shutdown: CancellationToken,
 ) -> anyhow::Result<()> {
     let auth = Auth { tokens };
@@ -413,19 +445,23 @@ pub async fn serve(
         }
     });
 
-    let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
-    let mut builder = tonic::transport::Server::builder();
-    if let Some(tls) = tls {
-        let identity = tonic::transport::Identity::from_pem(tls.cert_pem, tls.key_pem);
-        builder = builder.tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))?;
-    }
-    let result = builder
-        .add_service(health)
+    let routes = tonic::service::Routes::new(health)
         .add_service(InterceptedService::new(reflection_v1, auth.clone()))
         .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
         .add_service(InterceptedService::new(api, auth))
-        .serve_with_incoming_shutdown(incoming, shutdown.cancelled_owned())
-        .await;
+        .prepare();
+    let routes = tower::ServiceExt::<axum::http::Request<hyper::body::Incoming>>::map_response(
+        routes,
+        decode_errors_are_invalid_argument as fn(axum::http::Response<tonic::body::Body>) -> _,
+    );
+    let local = listener.local_addr().ok();
+    // What tonic's own server would record: `Request::remote_addr` reads it.
+    let per_peer = move |peer| {
+        let info = TcpConnectInfo { local_addr: local, remote_addr: Some(peer) };
+        crate::conn::WithExtension::new(routes.clone(), info)
+    };
+    let tls = tls.map(|t| t.grpc);
+    let result = crate::conn::serve(listener, tls, Protocols::Http2, timeouts, per_peer, shutdown).await;
     health_task.abort();
     result.map_err(Into::into)
 }

@@ -24,6 +24,7 @@ pub fn status(e: &Error) -> StatusCode {
         Error::BadRequest(_) => StatusCode::BAD_REQUEST,
         Error::InvalidFrame(_) => StatusCode::UNPROCESSABLE_ENTITY,
         Error::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+        Error::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
         Error::Unauthenticated(_) => StatusCode::UNAUTHORIZED,
         Error::NotFound(_) => StatusCode::NOT_FOUND,
         Error::Conflict(_) => StatusCode::CONFLICT,
@@ -58,6 +59,7 @@ impl IntoResponse for ApiError {
             Error::BadRequest(_)
             | Error::InvalidFrame(_)
             | Error::TooLarge(_)
+            | Error::Timeout(_)
             | Error::NotFound(_)
             | Error::Conflict(_)
             | Error::InProgress(_)

@@ -4,21 +4,22 @@
 //! document served at `/v1/openapi.json`.
 
 mod error;
+pub mod multipart;
 
 use std::convert::Infallible;
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::body::Body;
-use axum::extract::connect_info::Connected;
-use axum::extract::{
-    ConnectInfo, DefaultBodyLimit, Extension, FromRequest, MatchedPath, Multipart, Path, Query, Request, State,
-};
+use axum::extract::{ConnectInfo, DefaultBodyLimit, Extension, MatchedPath, Path, Query, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use axum::serve::IncomingStream;
 use axum::{Json, Router};
 use futures_util::{Stream, StreamExt};
 use serde::Deserialize;
@@ -26,6 +27,7 @@ use serde_json::{json, Value};
 use tokio_util::sync::CancellationToken;
 
 pub use error::ApiError;
+use multipart::{FormData, FormError};
 
 use crate::auth::{ClientId, Tokens};
 use crate::error::Error;
@@ -91,8 +93,8 @@ fn routes(table: &[(&str, &str)]) -> Router<AppState> {
     router
 }
 
-/// The whole HTTP API. Serve it with `into_make_service_with_connect_info::<Peer>()`:
-/// without authentication, clients are told apart by their address.
+/// The whole HTTP API. Serve it through [`per_peer`]: without authentication, clients are
+/// told apart by their address.
 pub fn router(state: AppState) -> Router {
     let protected = routes(PROTECTED_ROUTES).route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
     routes(OPEN_ROUTES)
@@ -100,8 +102,43 @@ pub fn router(state: AppState) -> Router {
         .fallback(|| async { ApiError::from(Error::NotFound("no such route".into())) })
         // Uploads are streamed to disk and limited by `--max-body-bytes` as they arrive.
         .layer(DefaultBodyLimit::disable())
+        .layer(middleware::from_fn(json_errors))
         .layer(middleware::from_fn_with_state(state.clone(), observe))
         .with_state(state)
+}
+
+/// Gives every error answer the JSON shape of [`ApiError`], including those the router
+/// and axum's extractors write as plain text (405, a path that is not UTF-8, a bad query):
+/// their status and headers (`Allow`) are kept, their text becomes the message.
+async fn json_errors(request: Request, next: Next) -> Response {
+    let (method, path) = (request.method().clone(), request.uri().path().to_owned());
+    let response = next.run(request).await;
+    let status = response.status();
+    let is_json =
+        response.headers().get(header::CONTENT_TYPE).is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if status.as_u16() < 400 || is_json {
+        return response;
+    }
+    let (mut parts, body) = response.into_parts();
+    let text = axum::body::to_bytes(body, 4096).await.map(|b| String::from_utf8_lossy(&b).trim().to_string());
+    let path = crate::error::truncate(&path, crate::error::ECHO_CHARS);
+    let (code, message) = match status {
+        StatusCode::METHOD_NOT_ALLOWED => {
+            let allowed = parts.headers.get(header::ALLOW).and_then(|v| v.to_str().ok()).unwrap_or("");
+            ("method_not_allowed", format!("{method} is not allowed on {path} (allowed: {allowed})"))
+        }
+        StatusCode::NOT_FOUND => ("not_found", format!("no route {method} {path}")),
+        _ => {
+            let code = if status.is_client_error() { "bad_request" } else { "internal" };
+            let text = text.ok().filter(|t| !t.is_empty());
+            let text = text.unwrap_or_else(|| status.canonical_reason().unwrap_or("error").to_string());
+            (code, crate::error::truncate(&text, 256).into_owned())
+        }
+    };
+    let body = serde_json::to_vec(&json!({ "error": { "code": code, "message": message } })).unwrap_or_default();
+    parts.headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/json"));
+    parts.headers.remove(header::CONTENT_LENGTH);
+    Response::from_parts(parts, Body::from(body))
 }
 
 /// Logs each request and counts it by route template and status.
@@ -123,21 +160,16 @@ async fn observe(State(app): State<AppState>, request: Request, next: Next) -> R
     response
 }
 
-/// The address of the other end of a connection, plain or TLS (serve the router with
-/// `into_make_service_with_connect_info::<Peer>()`).
+/// The address of the other end of a connection, plain or TLS: a `ConnectInfo<Peer>`
+/// extension on every request (see [`per_peer`]).
 #[derive(Clone, Copy, Debug)]
 pub struct Peer(pub std::net::SocketAddr);
 
-impl Connected<IncomingStream<'_, tokio::net::TcpListener>> for Peer {
-    fn connect_info(stream: IncomingStream<'_, tokio::net::TcpListener>) -> Peer {
-        Peer(*stream.remote_addr())
-    }
-}
-
-impl Connected<IncomingStream<'_, crate::tls::TlsListener>> for Peer {
-    fn connect_info(stream: IncomingStream<'_, crate::tls::TlsListener>) -> Peer {
-        Peer(*stream.remote_addr())
-    }
+/// The router as the service of one connection from `peer` (for [`crate::conn::serve`]).
+pub fn per_peer(
+    router: Router,
+) -> impl Fn(std::net::SocketAddr) -> crate::conn::WithExtension<Router, ConnectInfo<Peer>> {
+    move |peer| crate::conn::WithExtension::new(router.clone(), ConnectInfo(Peer(peer)))
 }
 
 /// Checks the bearer token and records who is calling (a [`ClientId`] extension).
@@ -237,13 +269,72 @@ async fn submit(
     Extension(client): Extension<ClientId>,
     request: Request,
 ) -> Result<Response, ApiError> {
-    let request = request.map(|body| Body::new(DrainOnDrop(Some(body))));
+    let gap = app.service.settings().upload_timeout;
+    let stalled = Arc::new(AtomicBool::new(false));
+    let request = request.map(|body| Body::new(Progress::new(DrainOnDrop(Some(body)), gap, stalled.clone())));
     let service = app.service.clone();
-    let result = submit_inner(app, client, request).await;
+    let mut result = submit_inner(app, client.clone(), request).await;
+    if result.is_err() && stalled.load(Ordering::Acquire) {
+        let message = format!(
+            "no upload bytes arrived for {} (--upload-timeout); the upload was dropped",
+            humantime::format_duration(gap)
+        );
+        tracing::warn!(client = client.as_str(), transport = "http", "upload timed out: {message}");
+        result = Err(Error::Timeout(message).into());
+    }
     if let Err(e) = &result {
         service.note_rejection(&e.0);
     }
     result
+}
+
+/// An upload body that fails when no byte arrives for `gap` (`--upload-timeout`), setting
+/// `stalled`; its handler then answers 408 and drops the upload, releasing its slot.
+struct Progress {
+    inner: DrainOnDrop,
+    gap: Duration,
+    deadline: Pin<Box<tokio::time::Sleep>>,
+    stalled: Arc<AtomicBool>,
+}
+
+impl Progress {
+    fn new(inner: DrainOnDrop, gap: Duration, stalled: Arc<AtomicBool>) -> Progress {
+        Progress { inner, gap, deadline: Box::pin(tokio::time::sleep(gap)), stalled }
+    }
+}
+
+impl http_body::Body for Progress {
+    type Data = bytes::Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<http_body::Frame<bytes::Bytes>, axum::Error>>> {
+        let this = &mut *self;
+        match Pin::new(&mut this.inner).poll_frame(cx) {
+            std::task::Poll::Pending => {
+                if this.deadline.as_mut().poll(cx).is_ready() {
+                    this.stalled.store(true, Ordering::Release);
+                    return std::task::Poll::Ready(Some(Err(axum::Error::new("the upload stalled"))));
+                }
+                std::task::Poll::Pending
+            }
+            ready => {
+                let next = tokio::time::Instant::now() + this.gap;
+                this.deadline.as_mut().reset(next);
+                ready
+            }
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
+    }
 }
 
 async fn submit_inner(app: AppState, client: ClientId, request: Request) -> Result<Response, ApiError> {
@@ -294,7 +385,7 @@ async fn submit_inner(app: AppState, client: ClientId, request: Request) -> Resu
 /// is closed).
 const DRAIN_BYTES: u64 = 64 << 20;
 /// Time given to a client to finish sending after an early answer.
-const DRAIN_TIME: std::time::Duration = std::time::Duration::from_secs(10);
+const DRAIN_TIME: Duration = Duration::from_secs(10);
 
 /// The body of an upload. Dropped before its end (a refusal such as 429, or an error
 /// mid-upload), the rest is read and discarded in the background, up to [`DRAIN_BYTES`] and
@@ -354,6 +445,18 @@ fn serde_urlencoded_query(q: &str) -> Result<OptionsQuery, Error> {
         .map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))
 }
 
+/// Largest `options` part of a multipart body, in bytes.
+const OPTIONS_LIMIT: usize = 64 * 1024;
+
+fn form_error(e: FormError) -> Error {
+    match e {
+        FormError::TooLarge { .. } => Error::TooLarge(e.to_string()),
+        FormError::Malformed(_) | FormError::Body(_) => Error::BadRequest(e.to_string()),
+    }
+}
+
+/// A multipart body: its slot is taken before any of it is read, and nothing of it is
+/// held in memory beyond the limits of [`multipart`] and the `options` part's.
 async fn submit_multipart(
     app: AppState,
     client: ClientId,
@@ -361,25 +464,26 @@ async fn submit_multipart(
     request: Request,
 ) -> Result<Response, ApiError> {
     let header_key = idempotency_header(request.headers())?;
-    let mut multipart = Multipart::from_request(request, &())
-        .await
-        .map_err(|e| Error::BadRequest(format!("bad multipart body: {}", e.body_text())))?;
+    let content_type = request.headers().get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    let boundary = multipart::boundary(content_type)
+        .ok_or_else(|| Error::BadRequest("bad multipart body: the Content-Type names no boundary".into()))?;
+    let mut slot = Some(app.service.reserve(&client)?);
+    let body = request.into_body().into_data_stream();
+    let mut form = FormData::new(body, &boundary, multipart::Limits::default());
     let mut ticket = None;
-    let bad = |e: axum::extract::multipart::MultipartError| {
-        Error::BadRequest(format!("bad multipart body: {}", e.body_text()))
-    };
-    while let Some(mut field) = multipart.next_field().await.map_err(bad)? {
-        let name = field.name().unwrap_or("").to_string();
+    let mut options_seen = false;
+    while let Some(head) = form.next_part().await.map_err(form_error)? {
+        let name = head.name.unwrap_or_default();
         match name.as_str() {
             "options" => {
                 if ticket.is_some() {
                     return Err(Error::BadRequest("the `options` part must come before `frame`".into()).into());
                 }
-                let text = field.text().await.map_err(bad)?;
-                if text.len() > 64 * 1024 {
-                    return Err(Error::BadRequest("the `options` part is over 64 KiB".into()).into());
+                if std::mem::replace(&mut options_seen, true) {
+                    return Err(Error::BadRequest("the `options` part was sent twice".into()).into());
                 }
-                options = serde_json::from_str::<JobOptions>(&text)
+                let text = form.read_to_limit("the `options` part", OPTIONS_LIMIT).await.map_err(form_error)?;
+                options = serde_json::from_slice::<JobOptions>(&text)
                     .map_err(|e| Error::BadRequest(format!("bad `options` JSON: {e}")))?;
                 if options.idempotency_key.is_none() {
                     options.idempotency_key = header_key.clone();
@@ -388,14 +492,15 @@ async fn submit_multipart(
             "frame" | "reference" => {
                 let part = if name == "frame" { UploadPart::Frame } else { UploadPart::Reference };
                 if ticket.is_none() {
-                    match app.service.admit(options.clone(), "http", &client)? {
+                    let slot = slot.take().expect("reserved above, taken once");
+                    match app.service.admit_reserved(slot, options.clone(), "http")? {
                         Admission::Existing(status) => return Ok(accepted(&status, true)),
                         Admission::New(t) => ticket = Some(t),
                     }
                 }
                 let t = ticket.as_mut().expect("admitted above");
                 let mut sink = t.sink(part).await?;
-                while let Some(chunk) = field.chunk().await.map_err(bad)? {
+                while let Some(chunk) = form.chunk().await.map_err(form_error)? {
                     sink.write(&chunk).await?;
                 }
                 if sink.written() == 0 {
@@ -405,7 +510,8 @@ async fn submit_multipart(
             }
             other => {
                 return Err(Error::BadRequest(format!(
-                    "unknown multipart part `{other}` (expected options, frame, reference)"
+                    "unknown multipart part `{}` (expected options, frame, reference)",
+                    crate::error::truncate(other, crate::error::ECHO_CHARS)
                 ))
                 .into())
             }

@@ -1,14 +1,21 @@
 //! Admission: whether a submission may start uploading (readiness, idempotency key,
 //! capacity, the client's own limits), and queuing it once its upload is complete.
 //!
-//! Locking: [`JobService::admit`] and `release` only change memory under the state lock.
+//! An upload holds a [`Slot`] from before its first byte is read to its queuing: a place
+//! in the capacity and one of its client's uploads in flight. A raw body is admitted with
+//! its options at once ([`JobService::admit`]); a multipart body reserves its slot first
+//! ([`JobService::reserve`]), since its options arrive inside it, then is admitted
+//! ([`JobService::admit_reserved`]).
+//!
+//! Locking: [`JobService::admit`], `reserve` and the release of a slot only change memory
+//! under the state lock.
 //! `enqueue` writes the new record to the store with no lock held (nobody else knows the
 //! job yet), then inserts it under the state lock.
 
 use std::time::Duration;
 
 use super::uploads::Ticket;
-use super::{Entry, JobService, State};
+use super::{scoped_key, Entry, JobService, State};
 use crate::auth::ClientId;
 use crate::error::{Error, Result};
 use crate::jobs::{JobEvent, JobOptions, JobRecord, JobState, JobStatus, Phase, Progress};
@@ -20,6 +27,38 @@ pub enum Admission {
     New(Ticket),
     /// A job with the same idempotency key exists: this is it.
     Existing(JobStatus),
+}
+
+/// A place held by an upload in progress: counted in the capacity (`reserved`) and in its
+/// client's uploads in flight until it is queued or dropped.
+pub struct Slot {
+    service: JobService,
+    client: ClientId,
+    held: std::sync::atomic::AtomicBool,
+}
+
+impl Slot {
+    pub fn client(&self) -> &ClientId {
+        &self.client
+    }
+
+    /// Gives the place back (once), under the state lock the caller holds.
+    pub(super) fn release_in(&self, st: &mut State) {
+        if self.held.swap(false, std::sync::atomic::Ordering::AcqRel) {
+            st.reserved -= 1;
+            release_upload(st, &self.client);
+            self.service.inner.telemetry.set_uploads(st.reserved);
+        }
+    }
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        if self.held.load(std::sync::atomic::Ordering::Acquire) {
+            let service = self.service.clone();
+            self.release_in(&mut service.lock());
+        }
+    }
 }
 
 /// One fewer upload in progress for `client`.
@@ -36,6 +75,42 @@ impl JobService {
     /// Admits a submission before its frame is read: checks readiness, the idempotency key
     /// and the capacity, and reserves a place in the queue. Memory only: returns at once.
     pub fn admit(&self, options: JobOptions, transport: &'static str, client: &ClientId) -> Result<Admission> {
+        self.admit_inner(options, transport, client, None)
+    }
+
+    /// Reserves a place for an upload whose options are not known yet (they come inside
+    /// a multipart body): checks the capacity and the client's limits before any of the
+    /// body is read. Memory only.
+    pub fn reserve(&self, client: &ClientId) -> Result<Slot> {
+        let mut st = self.lock();
+        self.take_slot(&mut st, client)
+    }
+
+    /// Admits a submission that holds a [`Slot`] already (see [`JobService::admit`]).
+    pub fn admit_reserved(&self, slot: Slot, options: JobOptions, transport: &'static str) -> Result<Admission> {
+        let client = slot.client.clone();
+        self.admit_inner(options, transport, &client, Some(slot))
+    }
+
+    fn take_slot(&self, st: &mut State, client: &ClientId) -> Result<Slot> {
+        let capacity = self.inner.settings.capacity;
+        if st.queue.len() + st.reserved >= capacity {
+            return Err(Error::QueueFull { capacity, retry_after_s: self.retry_after_s(st) });
+        }
+        self.check_client(st, client)?;
+        st.reserved += 1;
+        *st.uploads.entry(client.clone()).or_default() += 1;
+        self.inner.telemetry.set_uploads(st.reserved);
+        Ok(Slot { service: self.clone(), client: client.clone(), held: true.into() })
+    }
+
+    fn admit_inner(
+        &self,
+        options: JobOptions,
+        transport: &'static str,
+        client: &ClientId,
+        slot: Option<Slot>,
+    ) -> Result<Admission> {
         let options = options.normalize().map_err(Error::BadRequest)?;
         let mut st = self.lock();
         match self.phase() {
@@ -55,31 +130,29 @@ impl JobService {
                 return Err(Error::BadRequest(format!("no `{v}` model is loaded (loaded: {})", loaded.join(", "))));
             }
         }
-        if let Some(key) = &options.idempotency_key {
-            if let Some(id) = st.keys.get(key) {
+        let scoped = options.idempotency_key.as_deref().map(|k| scoped_key(Some(client.as_str()), k));
+        if let (Some(key), Some(scoped)) = (&options.idempotency_key, &scoped) {
+            if let Some(id) = st.keys.get(scoped) {
                 if let Some(entry) = st.jobs.get(id) {
                     return Ok(Admission::Existing(self.status_of(&st, entry)));
                 }
             }
-            if st.uploading.contains(key) {
+            if st.uploading.contains(scoped) {
                 return Err(Error::InProgress(format!(
                     "a submission with idempotency key `{key}` is still being uploaded; retry when it completes"
                 )));
             }
         }
-        let capacity = self.inner.settings.capacity;
-        if st.queue.len() + st.reserved >= capacity {
-            return Err(Error::QueueFull { capacity, retry_after_s: self.retry_after_s(&st) });
-        }
-        self.check_client(&st, client)?;
-        st.reserved += 1;
-        *st.uploads.entry(client.clone()).or_default() += 1;
-        if let Some(key) = &options.idempotency_key {
-            st.uploading.insert(key.clone());
+        let slot = match slot {
+            Some(slot) => slot,
+            None => self.take_slot(&mut st, client)?,
+        };
+        if let Some(scoped) = scoped {
+            st.uploading.insert(scoped);
         }
         drop(st);
         let id = uuid::Uuid::now_v7().to_string();
-        Ok(Admission::New(Ticket::new(self.clone(), id, options, transport, client.clone())))
+        Ok(Admission::New(Ticket::new(self.clone(), id, options, transport, slot)))
     }
 
     /// Refuses a new upload when `client` is at its own limits.
@@ -122,6 +195,7 @@ impl JobService {
             Error::ClientLimit { .. } => "client_limit",
             Error::BadRequest(_) | Error::InvalidFrame(_) => "invalid",
             Error::TooLarge(_) => "too_large",
+            Error::Timeout(_) => "timeout",
             Error::Unavailable(_) => "unavailable",
             Error::Storage { full: true, .. } => "storage_full",
             Error::Storage { full: false, .. } => "storage_unavailable",
@@ -177,11 +251,11 @@ impl JobService {
         };
         self.inner.store.put(&record)?;
         let mut st = self.lock();
-        st.reserved -= 1;
-        release_upload(&mut st, ticket.client());
+        ticket.slot().release_in(&mut st);
         if let Some(key) = &record.options.idempotency_key {
-            st.uploading.remove(key);
-            st.keys.insert(key.clone(), record.id.clone());
+            let scoped = scoped_key(record.client.as_deref(), key);
+            st.uploading.remove(&scoped);
+            st.keys.insert(scoped, record.id.clone());
         }
         st.queue.push(record.options.priority, record.seq, record.id.clone());
         let id = record.id.clone();
@@ -195,13 +269,12 @@ impl JobService {
         Ok(status)
     }
 
-    /// Gives back the place of an admission that was not queued.
-    pub(super) fn release(&self, key: Option<&str>, client: &ClientId) {
+    /// Gives back the place and the idempotency key of an admission that was not queued.
+    pub(super) fn release(&self, key: Option<&str>, slot: &Slot) {
         let mut st = self.lock();
-        st.reserved -= 1;
-        release_upload(&mut st, client);
+        slot.release_in(&mut st);
         if let Some(key) = key {
-            st.uploading.remove(key);
+            st.uploading.remove(&scoped_key(Some(slot.client().as_str()), key));
         }
     }
 }

@@ -12,7 +12,7 @@
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use super::{not_found, JobService, Journal, State};
+use super::{not_found, scoped_key, JobService, Journal, State};
 use crate::error::{Error, Result};
 use crate::jobs::{
     FireflyCounts, JobError, JobErrorCode, JobEvent, JobMetrics, JobRecord, JobState, JobStatus, Phase, Progress,
@@ -313,7 +313,7 @@ impl JobService {
             self.update_depth(&st);
         }
         if let Some(key) = &r.options.idempotency_key {
-            st.keys.remove(key);
+            st.keys.remove(&scoped_key(r.client.as_deref(), key));
         }
         drop(st);
         drop(journal);
@@ -358,7 +358,7 @@ impl JobService {
             for id in &expired {
                 if let Some(entry) = st.jobs.remove(id) {
                     if let Some(key) = &entry.record.options.idempotency_key {
-                        st.keys.remove(key);
+                        st.keys.remove(&scoped_key(entry.record.client.as_deref(), key));
                     }
                 }
             }

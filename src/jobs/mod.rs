@@ -77,7 +77,7 @@ use crate::engine::{DenoiserFactory, EngineConfig, Fireflies, ModelInfo};
 use crate::error::{Error, Result};
 use crate::frame::Limits;
 use crate::telemetry::Telemetry;
-pub use admission::Admission;
+pub use admission::{Admission, Slot};
 pub use health::StorageProblem;
 pub use queries::ListFilter;
 use queue::Queue;
@@ -111,6 +111,8 @@ pub struct Settings {
     pub default_deadline: Option<Duration>,
     pub limits: Limits,
     pub max_body_bytes: u64,
+    /// The longest gap between two pieces of an upload (`--upload-timeout`).
+    pub upload_timeout: Duration,
     /// Uploads one client may have in flight at once.
     pub max_uploads_per_client: usize,
     /// Unfinished (uploading, queued or running) jobs one client may have.
@@ -137,6 +139,7 @@ impl Settings {
             default_deadline: Some(args.job_deadline).filter(|d| !d.is_zero()),
             limits: args.limits(),
             max_body_bytes: args.max_body_bytes,
+            upload_timeout: args.upload_timeout,
             max_uploads_per_client: args.max_uploads_per_client,
             max_jobs_per_client: args.max_jobs_per_client(),
             workers: args.workers(),
@@ -176,9 +179,9 @@ struct State {
     queue: Queue,
     /// Admissions whose upload is in progress; they count against the capacity.
     reserved: usize,
-    /// Idempotency keys of committed jobs.
+    /// Idempotency keys of committed jobs, each scoped to its client ([`scoped_key`]).
     keys: HashMap<String, String>,
-    /// Idempotency keys of uploads in progress.
+    /// Idempotency keys of uploads in progress, scoped the same way.
     uploading: HashSet<String>,
     /// Uploads in progress per client.
     uploads: HashMap<ClientId, usize>,
@@ -228,8 +231,16 @@ fn lock_poisoned<T>(e: PoisonError<T>) -> T {
     e.into_inner()
 }
 
+/// An idempotency key as [`State`] holds it: scoped to the client that sent it, so one
+/// client's key never answers for another's frame (two shots that both name a frame
+/// `f0001`). Keys are visible ASCII and client ids have no space, so the space separates
+/// them unambiguously.
+fn scoped_key(client: Option<&str>, key: &str) -> String {
+    format!("{} {key}", client.unwrap_or(""))
+}
+
 fn not_found(id: &str) -> Error {
-    Error::NotFound(format!("no job {id}"))
+    Error::NotFound(format!("no job {}", crate::error::truncate(id, crate::error::ECHO_CHARS)))
 }
 
 impl JobService {

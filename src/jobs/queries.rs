@@ -10,6 +10,11 @@ use super::{not_found, Entry, JobService};
 use crate::error::{Error, Result};
 use crate::jobs::{JobEvent, JobState, JobStatus, Priority};
 
+/// Jobs in a page when the request names no `limit`.
+pub const DEFAULT_PAGE: usize = 100;
+/// The largest `limit` (`page_size`) accepted, as the OpenAPI document states.
+pub const MAX_PAGE: usize = 1000;
+
 /// Filters of [`JobService::list`].
 #[derive(Clone, Debug, Default)]
 pub struct ListFilter {
@@ -32,9 +37,18 @@ impl JobService {
     pub fn list(&self, filter: &ListFilter) -> Result<(Vec<JobStatus>, Option<String>)> {
         let after = match filter.after.as_deref() {
             None | Some("") => None,
-            Some(t) => Some(t.parse::<u64>().map_err(|_| Error::BadRequest(format!("bad page token `{t}`")))?),
+            Some(t) => Some(t.parse::<u64>().map_err(|_| {
+                Error::BadRequest(format!(
+                    "bad page token `{}`: pass the next_page_token of the previous page",
+                    crate::error::truncate(t, crate::error::ECHO_CHARS)
+                ))
+            })?),
         };
-        let limit = filter.limit.unwrap_or(100).clamp(1, 1000);
+        let limit = match filter.limit {
+            None => DEFAULT_PAGE,
+            Some(n) if (1..=MAX_PAGE).contains(&n) => n,
+            Some(n) => return Err(Error::BadRequest(format!("limit must be 1 to {MAX_PAGE}, not {n}"))),
+        };
         let st = self.lock();
         let mut matching: Vec<&Entry> = st
             .jobs

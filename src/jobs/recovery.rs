@@ -227,7 +227,7 @@ pub(super) fn recover(store: &Store, settings: &Settings, telemetry: &Telemetry,
             store.put(&r)?;
         }
         if let Some(key) = &r.options.idempotency_key {
-            st.keys.insert(key.clone(), r.id.clone());
+            st.keys.insert(super::scoped_key(r.client.as_deref(), key), r.id.clone());
         }
         st.jobs.insert(r.id.clone(), Entry::new(r));
     }

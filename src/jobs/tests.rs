@@ -123,6 +123,7 @@ fn settings(capacity: usize) -> Settings {
         default_deadline: None,
         limits: Limits::default(),
         max_body_bytes: 1 << 20,
+        upload_timeout: Duration::from_secs(30),
         max_uploads_per_client: 16,
         max_jobs_per_client: usize::MAX,
         workers: 1,

@@ -7,6 +7,7 @@
 
 use std::sync::Arc;
 
+use super::admission::Slot;
 use super::{validate, JobService};
 use crate::atomic::AsyncFile;
 use crate::auth::ClientId;
@@ -41,7 +42,7 @@ pub struct Ticket {
     frame: Option<u64>,
     reference: Option<u64>,
     done: bool,
-    client: ClientId,
+    slot: Slot,
 }
 
 impl Ticket {
@@ -50,9 +51,9 @@ impl Ticket {
         id: String,
         options: JobOptions,
         transport: &'static str,
-        client: ClientId,
+        slot: Slot,
     ) -> Ticket {
-        Ticket { service, id, options, transport, received: 0, frame: None, reference: None, done: false, client }
+        Ticket { service, id, options, transport, received: 0, frame: None, reference: None, done: false, slot }
     }
 
     pub fn id(&self) -> &str {
@@ -72,7 +73,11 @@ impl Ticket {
     }
 
     pub(super) fn client(&self) -> &ClientId {
-        &self.client
+        self.slot.client()
+    }
+
+    pub(super) fn slot(&self) -> &Slot {
+        &self.slot
     }
 
     pub(super) fn transport(&self) -> &'static str {
@@ -183,7 +188,7 @@ impl Ticket {
 impl Drop for Ticket {
     fn drop(&mut self) {
         if !self.done {
-            self.service.release(self.options.idempotency_key.as_deref(), &self.client);
+            self.service.release(self.options.idempotency_key.as_deref(), &self.slot);
             let dir = self.service.inner.store.job_dir(&self.id);
             // Small and rare (refused uploads): removing inline is fine.
             let _ = std::fs::remove_dir_all(dir);

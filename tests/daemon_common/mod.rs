@@ -353,3 +353,39 @@ pub fn walk(dir: &Path) -> Vec<PathBuf> {
     }
     out
 }
+
+/// A self-signed certificate for `localhost`, written as PEM files; returns the
+/// certificate's PEM.
+/// A self-signed certificate in `dir` and the daemon flags that serve it: (CA PEM, flags).
+pub fn tls_flags(dir: &std::path::Path) -> (String, Vec<String>) {
+    let ca = self_signed(dir);
+    let file = |name: &str| dir.join(name).display().to_string();
+    (ca, vec!["--tls-cert".into(), file("cert.pem"), "--tls-key".into(), file("key.pem")])
+}
+
+pub fn self_signed(dir: &std::path::Path) -> String {
+    let key = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
+    std::fs::write(dir.join("cert.pem"), key.cert.pem()).unwrap();
+    std::fs::write(dir.join("key.pem"), key.signing_key.serialize_pem()).unwrap();
+    key.cert.pem()
+}
+
+/// `GET path` over TLS, trusting only `ca_pem`; the status line.
+pub async fn https_get(addr: std::net::SocketAddr, ca_pem: &str, path: &str) -> anyhow::Result<String> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use tokio_rustls::rustls::{self, pki_types::pem::PemObject, pki_types::CertificateDer};
+    let mut roots = rustls::RootCertStore::empty();
+    roots.add(CertificateDer::from_pem_slice(ca_pem.as_bytes())?)?;
+    let config =
+        rustls::ClientConfig::builder_with_provider(std::sync::Arc::new(rustls::crypto::ring::default_provider()))
+            .with_safe_default_protocol_versions()?
+            .with_root_certificates(roots)
+            .with_no_client_auth();
+    let connector = tokio_rustls::TlsConnector::from(std::sync::Arc::new(config));
+    let tcp = tokio::net::TcpStream::connect(addr).await?;
+    let mut tls = connector.connect("localhost".try_into()?, tcp).await?;
+    tls.write_all(format!("GET {path} HTTP/1.1\r\nhost: localhost\r\nconnection: close\r\n\r\n").as_bytes()).await?;
+    let mut answer = String::new();
+    tls.read_to_string(&mut answer).await?;
+    Ok(answer.lines().next().unwrap_or("").to_string())
+}

@@ -1,0 +1,307 @@
+//! The connections of both listeners: accepting, TLS, timeouts, graceful shutdown.
+//!
+//! Each accepted connection runs in its own task, from its first byte to its last: a
+//! client that stalls holds up only its own task (there is no shared pool of handshakes
+//! or connections for strangers to fill). A connection is bounded at every stage:
+//!
+//! | stage | bound | flag |
+//! |---|---|---|
+//! | TLS handshake | dropped when not done in time | `--tls-handshake-timeout` |
+//! | HTTP/1 request head | closed when not complete in time, counted from when the connection is ready for a request (so it also closes idle keep-alive connections) | `--header-timeout` |
+//! | any connection, HTTP/1, HTTP/2 or gRPC | no byte read or written for this long: asked to close (in-flight requests finish), then dropped after as long again | `--idle-timeout` |
+//! | HTTP/2 and gRPC peers | a PING every interval, closed when unanswered | `--keepalive-interval`, `--keepalive-timeout` |
+//! | upload bodies | no byte for this long: refused with 408 / DEADLINE_EXCEEDED, its slot released | `--upload-timeout` (in `http` and `grpc`) |
+//!
+//! Shutdown: when `shutdown` is cancelled the accept loop stops and every connection is
+//! asked to close gracefully; [`serve`] returns once all have. Dropping (aborting) the
+//! future of [`serve`] drops every connection at once.
+
+use std::net::SocketAddr;
+use std::pin::Pin;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
+
+use hyper::body::Incoming;
+use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+use hyper_util::server::conn::auto::Builder;
+use hyper_util::service::TowerToHyperService;
+use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::task::JoinSet;
+use tokio_rustls::rustls::ServerConfig;
+use tokio_rustls::TlsAcceptor;
+use tokio_util::sync::CancellationToken;
+
+/// The time limits of a listener's connections (see the module docs).
+#[derive(Clone, Copy, Debug)]
+pub struct Timeouts {
+    pub tls_handshake: Duration,
+    pub header: Duration,
+    pub idle: Duration,
+    pub keepalive_interval: Duration,
+    pub keepalive_timeout: Duration,
+}
+
+type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+/// The service of one connection: HTTP requests in, responses with a [`ConnBody`] out.
+pub trait ConnService<B>:
+    tower::Service<
+        axum::http::Request<Incoming>,
+        Response = axum::http::Response<B>,
+        Error: Into<BoxError>,
+        Future: Send + 'static,
+    > + Clone
+    + Send
+    + 'static
+{
+}
+
+impl<S, B> ConnService<B> for S where
+    S: tower::Service<
+            axum::http::Request<Incoming>,
+            Response = axum::http::Response<B>,
+            Error: Into<BoxError>,
+            Future: Send + 'static,
+        > + Clone
+        + Send
+        + 'static
+{
+}
+
+/// A response body a connection can send.
+pub trait ConnBody: http_body::Body<Data: Send, Error: Into<BoxError>> + Send + 'static {}
+
+impl<B> ConnBody for B where B: http_body::Body<Data: Send, Error: Into<BoxError>> + Send + 'static {}
+
+/// Which protocols a listener speaks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Protocols {
+    /// HTTP/1.1 and HTTP/2 (prior knowledge or ALPN).
+    Http,
+    /// HTTP/2 only (gRPC).
+    Http2,
+}
+
+/// Serves every connection of `listener` with the service that `service` makes for its
+/// peer address, until `shutdown` is cancelled and the last connection has closed.
+pub async fn serve<F, S, B>(
+    listener: TcpListener,
+    tls: Option<Arc<ServerConfig>>,
+    protocols: Protocols,
+    timeouts: Timeouts,
+    service: F,
+    shutdown: CancellationToken,
+) -> std::io::Result<()>
+where
+    F: Fn(SocketAddr) -> S,
+    S: ConnService<B>,
+    B: ConnBody,
+{
+    let mut builder = Builder::new(TokioExecutor::new());
+    builder.http1().timer(TokioTimer::new()).header_read_timeout(timeouts.header).keep_alive(true);
+    builder
+        .http2()
+        .timer(TokioTimer::new())
+        .keep_alive_interval(timeouts.keepalive_interval)
+        .keep_alive_timeout(timeouts.keepalive_timeout);
+    if protocols == Protocols::Http2 {
+        builder = builder.http2_only();
+    }
+    let builder = Arc::new(builder);
+    let acceptor = tls.map(TlsAcceptor::from);
+    let mut connections = JoinSet::new();
+    loop {
+        let (stream, peer) = tokio::select! {
+            _ = shutdown.cancelled() => break,
+            Some(_) = connections.join_next(), if !connections.is_empty() => continue,
+            accepted = listener.accept() => match accepted {
+                Ok(c) => c,
+                Err(e) => {
+                    // Out of file descriptors and the like: wait instead of spinning.
+                    tracing::warn!(error = %e, "cannot accept a connection");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+        };
+        let _ = stream.set_nodelay(true);
+        let svc = TowerToHyperService::new(service(peer));
+        let (builder, acceptor, shutdown) = (builder.clone(), acceptor.clone(), shutdown.clone());
+        connections.spawn(async move {
+            let activity = Activity::new();
+            let io = Watched { io: stream, activity: activity.clone() };
+            match acceptor {
+                None => connection(&builder, io, svc, activity, timeouts.idle, &shutdown).await,
+                Some(acceptor) => {
+                    let tls = tokio::select! {
+                        _ = shutdown.cancelled() => return,
+                        r = tokio::time::timeout(timeouts.tls_handshake, acceptor.accept(io)) => r,
+                    };
+                    match tls {
+                        Ok(Ok(tls)) => connection(&builder, tls, svc, activity, timeouts.idle, &shutdown).await,
+                        Ok(Err(e)) => tracing::debug!(%peer, error = %e, "TLS handshake failed"),
+                        Err(_) => tracing::debug!(%peer, "TLS handshake timed out"),
+                    }
+                }
+            }
+        });
+    }
+    drop(listener);
+    while connections.join_next().await.is_some() {}
+    Ok(())
+}
+
+/// One connection after its handshake: served until it ends, is idle too long (asked to
+/// close, then dropped after as long again) or the server shuts down (asked to close).
+async fn connection<I, S, B>(
+    builder: &Builder<TokioExecutor>,
+    io: I,
+    service: TowerToHyperService<S>,
+    activity: Activity,
+    idle: Duration,
+    shutdown: &CancellationToken,
+) where
+    I: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    S: ConnService<B>,
+    B: ConnBody,
+{
+    let conn = builder.serve_connection_with_upgrades(TokioIo::new(io), service);
+    tokio::pin!(conn);
+    let mut closing = false;
+    let mut idle_strikes = 0;
+    loop {
+        let quiet_until = activity.last() + idle;
+        tokio::select! {
+            _ = conn.as_mut() => return,
+            _ = shutdown.cancelled(), if !closing => {
+                closing = true;
+                conn.as_mut().graceful_shutdown();
+            }
+            _ = tokio::time::sleep_until(quiet_until.into()) => {
+                if activity.last() + idle > Instant::now() {
+                    idle_strikes = 0;
+                    continue;
+                }
+                idle_strikes += 1;
+                if idle_strikes > 1 {
+                    tracing::debug!(idle = ?idle, "closing an idle connection");
+                    return;
+                }
+                if !closing {
+                    closing = true;
+                    conn.as_mut().graceful_shutdown();
+                }
+                activity.touch();
+            }
+        }
+    }
+}
+
+/// When a connection last read or wrote a byte.
+#[derive(Clone)]
+struct Activity {
+    epoch: Instant,
+    /// Milliseconds since `epoch`.
+    last_ms: Arc<AtomicU64>,
+}
+
+impl Activity {
+    fn new() -> Activity {
+        Activity { epoch: Instant::now(), last_ms: Arc::new(AtomicU64::new(0)) }
+    }
+
+    fn touch(&self) {
+        self.last_ms.store(self.epoch.elapsed().as_millis() as u64, Ordering::Relaxed);
+    }
+
+    fn last(&self) -> Instant {
+        self.epoch + Duration::from_millis(self.last_ms.load(Ordering::Relaxed))
+    }
+}
+
+/// A stream that records its activity.
+struct Watched {
+    io: TcpStream,
+    activity: Activity,
+}
+
+impl AsyncRead for Watched {
+    fn poll_read(mut self: Pin<&mut Self>, cx: &mut Context<'_>, buf: &mut ReadBuf<'_>) -> Poll<std::io::Result<()>> {
+        let before = buf.filled().len();
+        let r = Pin::new(&mut self.io).poll_read(cx, buf);
+        if matches!(r, Poll::Ready(Ok(()))) && buf.filled().len() > before {
+            self.activity.touch();
+        }
+        r
+    }
+}
+
+impl AsyncWrite for Watched {
+    fn poll_write(mut self: Pin<&mut Self>, cx: &mut Context<'_>, data: &[u8]) -> Poll<std::io::Result<usize>> {
+        let r = Pin::new(&mut self.io).poll_write(cx, data);
+        if matches!(r, Poll::Ready(Ok(n)) if n > 0) {
+            self.activity.touch();
+        }
+        r
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        let r = Pin::new(&mut self.io).poll_write_vectored(cx, bufs);
+        if matches!(r, Poll::Ready(Ok(n)) if n > 0) {
+            self.activity.touch();
+        }
+        r
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.io.is_write_vectored()
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.io).poll_flush(cx)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.io).poll_shutdown(cx)
+    }
+}
+
+/// A service that puts one value (the peer's address, in the form its transport reads)
+/// into the extensions of every request of a connection.
+#[derive(Clone)]
+pub struct WithExtension<S, T> {
+    inner: S,
+    value: T,
+}
+
+impl<S, T> WithExtension<S, T> {
+    pub fn new(inner: S, value: T) -> WithExtension<S, T> {
+        WithExtension { inner, value }
+    }
+}
+
+impl<S, T, B> tower::Service<axum::http::Request<B>> for WithExtension<S, T>
+where
+    S: tower::Service<axum::http::Request<B>>,
+    T: Clone + Send + Sync + 'static,
+{
+    type Response = S::Response;
+    type Error = S::Error;
+    type Future = S::Future;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), S::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, mut request: axum::http::Request<B>) -> S::Future {
+        request.extensions_mut().insert(self.value.clone());
+        self.inner.call(request)
+    }
+}
