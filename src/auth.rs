@@ -6,6 +6,13 @@
 //! its length says anything about a token. Tokens never appear in logs, errors or job
 //! records: a client is named by a short digest prefix (`token:3fa9c2d41b07`) or, without
 //! authentication, by its address (`ip:10.1.2.3`).
+//!
+//! Scopes: a `submit` token (`--auth-token`, for render nodes) sees and changes only the
+//! jobs it submitted: other jobs answer 404, as if they did not exist. An `operator` token
+//! (`--operator-token`, for farm managers and dashboards) sees and changes every job. When
+//! operator tokens are configured, `/metrics` needs one; otherwise any token reads it, so a
+//! single-token setup works as before. Without authentication every caller is an operator
+//! (the daemon then trusts its network, docs/threat-model.md).
 
 use std::net::{IpAddr, SocketAddr};
 
@@ -42,10 +49,47 @@ impl ClientId {
     }
 }
 
-/// The accepted bearer tokens (as digests); empty disables authentication.
+/// What a token may do.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scope {
+    /// Submit jobs and see, cancel, delete and download its own.
+    Submit,
+    /// Everything: every client's jobs, and the metrics.
+    Operator,
+}
+
+/// Who is calling and what it may do: set on every authenticated request.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Caller {
+    pub id: ClientId,
+    pub scope: Scope,
+    /// Whether `/metrics` is open to it (operators; anyone while no operator token exists).
+    pub metrics: bool,
+}
+
+impl Caller {
+    /// A caller allowed everything: the daemon's own tasks and tests.
+    pub fn operator(id: ClientId) -> Caller {
+        Caller { id, scope: Scope::Operator, metrics: true }
+    }
+
+    /// Whether it may see and change a job submitted by `owner` (records written before
+    /// jobs had owners have none and are open to every caller).
+    pub fn may_access(&self, owner: Option<&str>) -> bool {
+        self.scope == Scope::Operator || owner.is_none_or(|o| o == self.id.as_str())
+    }
+
+    /// The owner a listing is restricted to: none for operators.
+    pub fn owner_filter(&self) -> Option<String> {
+        (self.scope != Scope::Operator).then(|| self.id.as_str().to_string())
+    }
+}
+
+/// The accepted bearer tokens (as digests, with their scopes); empty disables
+/// authentication.
 #[derive(Clone, Default)]
 pub struct Tokens {
-    digests: Vec<[u8; 32]>,
+    digests: Vec<([u8; 32], Scope)>,
 }
 
 impl std::fmt::Debug for Tokens {
@@ -59,8 +103,20 @@ fn digest(token: &str) -> [u8; 32] {
 }
 
 impl Tokens {
-    pub fn new(secrets: &[Secret]) -> Tokens {
-        Tokens { digests: secrets.iter().map(|s| digest(&s.0)).collect() }
+    /// `submit` tokens and `operator` tokens. A token listed in both is an operator.
+    pub fn new(submit: &[Secret], operator: &[Secret]) -> Tokens {
+        let operators: Vec<[u8; 32]> = operator.iter().map(|s| digest(&s.0)).collect();
+        let submitters = submit.iter().map(|s| digest(&s.0)).filter(|d| !operators.contains(d));
+        Tokens {
+            digests: submitters
+                .map(|d| (d, Scope::Submit))
+                .chain(operators.iter().map(|d| (*d, Scope::Operator)))
+                .collect(),
+        }
+    }
+
+    fn has_operators(&self) -> bool {
+        self.digests.iter().any(|(_, s)| *s == Scope::Operator)
     }
 
     pub fn enabled(&self) -> bool {
@@ -68,16 +124,16 @@ impl Tokens {
     }
 
     /// The client presenting `authorization` (the header or metadata value), or why it is
-    /// refused. With authentication off every caller is accepted and named by `peer`.
-    /// `hint` says where the token goes, for the error message.
+    /// refused. With authentication off every caller is accepted as an operator named by
+    /// `peer`. `hint` says where the token goes, for the error message.
     pub fn authenticate(
         &self,
         authorization: Option<&str>,
         peer: Option<SocketAddr>,
         hint: &str,
-    ) -> Result<ClientId, Error> {
+    ) -> Result<Caller, Error> {
         if !self.enabled() {
-            return Ok(ClientId::peer(peer));
+            return Ok(Caller::operator(ClientId::peer(peer)));
         }
         let Some(token) = bearer(authorization) else {
             return Err(Error::Unauthenticated(format!("missing bearer token ({hint}: Bearer <token>)")));
@@ -87,15 +143,19 @@ impl Tokens {
         // which token (if any) was presented.
         let mut found = subtle::Choice::from(0u8);
         let mut which = [0u8; 32];
-        for d in &self.digests {
+        let mut operator = subtle::Choice::from(0u8);
+        for (d, scope) in &self.digests {
             let same = d.ct_eq(&presented);
             found |= same;
+            operator |= same & subtle::Choice::from(u8::from(*scope == Scope::Operator));
             for (w, b) in which.iter_mut().zip(d) {
                 *w = u8::conditional_select(w, b, same);
             }
         }
         if bool::from(found) {
-            Ok(ClientId::token(&which))
+            let scope = if bool::from(operator) { Scope::Operator } else { Scope::Submit };
+            let metrics = scope == Scope::Operator || !self.has_operators();
+            Ok(Caller { id: ClientId::token(&which), scope, metrics })
         } else {
             Err(Error::Unauthenticated("invalid bearer token".into()))
         }
@@ -115,7 +175,7 @@ mod tests {
     use super::*;
 
     fn tokens() -> Tokens {
-        Tokens::new(&[Secret("s3cret".into()), Secret("other".into())])
+        Tokens::new(&[Secret("s3cret".into()), Secret("other".into())], &[])
     }
 
     #[test]
@@ -124,8 +184,11 @@ mod tests {
         let a = t.authenticate(Some("Bearer s3cret"), None, "h").unwrap();
         let b = t.authenticate(Some("bearer   other "), None, "h").unwrap();
         assert_ne!(a, b);
-        assert!(a.as_str().starts_with("token:") && a.as_str().len() == "token:".len() + 12, "{a:?}");
-        assert!(!a.as_str().contains("s3cret"));
+        let name = a.id.as_str();
+        assert!(name.starts_with("token:") && name.len() == "token:".len() + 12, "{a:?}");
+        assert!(!name.contains("s3cret"));
+        // Without operator tokens a submit token reads the metrics, as before scopes.
+        assert_eq!((a.scope, a.metrics), (Scope::Submit, true));
         assert_eq!(a, t.authenticate(Some("Bearer s3cret"), None, "h").unwrap(), "stable");
     }
 
@@ -144,11 +207,31 @@ mod tests {
 
     #[test]
     fn without_tokens_clients_are_named_by_address() {
-        let t = Tokens::new(&[]);
+        let t = Tokens::new(&[], &[]);
         let v4: SocketAddr = "10.1.2.3:4000".parse().unwrap();
         let mapped: SocketAddr = "[::ffff:10.1.2.3]:4001".parse().unwrap();
-        assert_eq!(t.authenticate(None, Some(v4), "h").unwrap().as_str(), "ip:10.1.2.3");
-        assert_eq!(t.authenticate(Some("Bearer x"), Some(mapped), "h").unwrap().as_str(), "ip:10.1.2.3");
-        assert_eq!(t.authenticate(None, None, "h").unwrap().as_str(), "ip:unknown");
+        let caller = t.authenticate(None, Some(v4), "h").unwrap();
+        assert_eq!(caller.id.as_str(), "ip:10.1.2.3");
+        assert_eq!(caller.scope, Scope::Operator, "without authentication the network is trusted");
+        assert_eq!(t.authenticate(Some("Bearer x"), Some(mapped), "h").unwrap().id.as_str(), "ip:10.1.2.3");
+        assert_eq!(t.authenticate(None, None, "h").unwrap().id.as_str(), "ip:unknown");
+    }
+
+    #[test]
+    fn scopes_decide_whose_jobs_and_the_metrics() {
+        let t = Tokens::new(
+            &[Secret("node".into()), Secret("both".into())],
+            &[Secret("ops".into()), Secret("both".into())],
+        );
+        let node = t.authenticate(Some("Bearer node"), None, "h").unwrap();
+        let ops = t.authenticate(Some("Bearer ops"), None, "h").unwrap();
+        assert_eq!((node.scope, node.metrics), (Scope::Submit, false));
+        assert_eq!((ops.scope, ops.metrics), (Scope::Operator, true));
+        assert_eq!(t.authenticate(Some("Bearer both"), None, "h").unwrap().scope, Scope::Operator);
+        assert!(node.may_access(Some(node.id.as_str())) && node.may_access(None));
+        assert!(!node.may_access(Some(ops.id.as_str())));
+        assert!(ops.may_access(Some(node.id.as_str())));
+        assert_eq!(node.owner_filter().as_deref(), Some(node.id.as_str()));
+        assert_eq!(ops.owner_filter(), None);
     }
 }

@@ -159,7 +159,8 @@ pub struct ServeArgs {
 
     // --- Security ----------------------------------------------------------------------
     /// Bearer tokens accepted on every endpoint except /livez, /readyz and gRPC health
-    /// (comma-separated in the environment). None: no authentication.
+    /// (comma-separated in the environment), with the `submit` scope: each sees only the
+    /// jobs it submitted. None (and no --operator-token): no authentication.
     #[arg(
         long = "auth-token",
         env = "MCDENOISE_AUTH_TOKENS",
@@ -168,6 +169,16 @@ pub struct ServeArgs {
         help_heading = "Security"
     )]
     pub auth_tokens: Vec<Secret>,
+    /// Bearer tokens with the `operator` scope: every client's jobs, and /metrics (which
+    /// then needs one).
+    #[arg(
+        long = "operator-token",
+        env = "MCDENOISE_OPERATOR_TOKENS",
+        value_delimiter = ',',
+        hide_env_values = true,
+        help_heading = "Security"
+    )]
+    pub operator_tokens: Vec<Secret>,
     /// PEM certificate chain: with `--tls-key`, both listeners speak TLS only (HTTPS and
     /// gRPC over TLS).
     #[arg(long, env = "MCDENOISE_TLS_CERT", requires = "tls_key", help_heading = "Security")]
@@ -319,7 +330,11 @@ impl ServeArgs {
                 "keepalive_timeout": humantime::format_duration(self.keepalive_timeout).to_string(),
                 "upload": humantime::format_duration(self.upload_timeout).to_string(),
             },
-            "auth": if self.auth_tokens.is_empty() { "off".to_string() } else { format!("{} token(s)", self.auth_tokens.len()) },
+            "auth": if self.auth_tokens.is_empty() && self.operator_tokens.is_empty() {
+                "off".to_string()
+            } else {
+                format!("{} submit token(s), {} operator token(s)", self.auth_tokens.len(), self.operator_tokens.len())
+            },
             "log_format": self.log_format,
             "shutdown_timeout": humantime::format_duration(self.shutdown_timeout).to_string(),
         })
@@ -335,8 +350,8 @@ pub fn apply_config_file(mut cmd: Command, path: &Path) -> anyhow::Result<Comman
     let mut unknown = Vec::new();
     for (key, value) in table {
         let mut id = key.replace('-', "_");
-        if id == "auth_token" {
-            id = "auth_tokens".into();
+        if id == "auth_token" || id == "operator_token" {
+            id.push('s');
         }
         if !ids.contains(&id) || id == "config" {
             unknown.push(key);

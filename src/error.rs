@@ -11,6 +11,7 @@
 //! | `TooLarge` | 413 | INVALID_ARGUMENT |
 //! | `Timeout` | 408 | DEADLINE_EXCEEDED |
 //! | `Unauthenticated` | 401 | UNAUTHENTICATED |
+//! | `Forbidden` | 403 | PERMISSION_DENIED |
 //! | `NotFound` | 404 | NOT_FOUND |
 //! | `Conflict` | 409 | FAILED_PRECONDITION |
 //! | `InProgress` | 409 | ABORTED |
@@ -39,6 +40,10 @@ pub enum Error {
     Timeout(String),
     #[error("{0}")]
     Unauthenticated(String),
+    /// The token is valid but its scope does not cover the route (`/metrics` for a
+    /// `submit` token when operator tokens are configured).
+    #[error("{0}")]
+    Forbidden(String),
     #[error("{0}")]
     NotFound(String),
     /// The job is not in a state that allows the operation (e.g. fetching the result of a
@@ -77,6 +82,7 @@ impl Error {
             Error::TooLarge(_) => "too_large",
             Error::Timeout(_) => "timeout",
             Error::Unauthenticated(_) => "unauthenticated",
+            Error::Forbidden(_) => "forbidden",
             Error::NotFound(_) => "not_found",
             Error::Conflict(_) => "conflict",
             Error::InProgress(_) => "in_progress",

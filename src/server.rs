@@ -81,7 +81,7 @@ impl Server {
 
         let trigger = CancellationToken::new();
         let stop = CancellationToken::new();
-        let tokens = Arc::new(crate::auth::Tokens::new(&args.auth_tokens));
+        let tokens = Arc::new(crate::auth::Tokens::new(&args.auth_tokens, &args.operator_tokens));
         let state = crate::http::AppState { service: service.clone(), tokens: tokens.clone(), shutdown: stop.clone() };
         let timeouts = args.timeouts();
         let http_task = tokio::spawn(crate::conn::serve(

@@ -1,6 +1,7 @@
 //! Security of both transports: every route but the probes needs the token (enumerated
 //! from the router's table, the OpenAPI document and the gRPC descriptors), tokens never
-//! reach the logs or the job store, per-client limits, and TLS on both listeners.
+//! reach the logs or the job store, jobs belong to the client that submitted them,
+//! per-client limits, and TLS on both listeners.
 
 mod common;
 mod daemon_common;
@@ -248,6 +249,57 @@ async fn each_client_has_its_own_limits_on_uploads_and_unfinished_jobs() {
         d.wait_state(id, "succeeded").await;
     }
     d.submit_ok(&frame(16, 16), "").await;
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_belong_to_their_client_and_operators_see_every_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start_with_token(dir.path(), &["--auth-token", "farm-a,farm-b", "--operator-token", "ops"], Some("farm-a"))
+        .await;
+    d.ready().await;
+    let (b, ops) = (HttpClient::new(&d.base, Some("farm-b")), HttpClient::new(&d.base, Some("ops")));
+    let call = |c: &HttpClient, method: Method, path: String| {
+        let c = c.clone();
+        async move { c.json(method, &path, &[], body_bytes(Bytes::new())).await.unwrap() }
+    };
+    let id = d.submit_ok(&frame(16, 16), "label=shot-1").await;
+    d.wait_state(&id, "succeeded").await;
+
+    // farm-b: the job does not exist for it, whatever it asks.
+    for (method, path) in [
+        (Method::GET, format!("/v1/jobs/{id}")),
+        (Method::GET, format!("/v1/jobs/{id}/result")),
+        (Method::GET, format!("/v1/jobs/{id}/events")),
+        (Method::POST, format!("/v1/jobs/{id}/cancel")),
+        (Method::DELETE, format!("/v1/jobs/{id}")),
+    ] {
+        let (status, err) = call(&b, method.clone(), path.clone()).await;
+        assert_eq!(
+            (status, err["error"]["code"].as_str()),
+            (StatusCode::NOT_FOUND, Some("not_found")),
+            "{method} {path}"
+        );
+    }
+    let (_, list) = call(&b, Method::GET, "/v1/jobs".into()).await;
+    assert_eq!(list["jobs"], serde_json::json!([]), "{list}");
+    let mut grpc_b = mcdenoise::client::grpc_connect(&d.grpc, Some("farm-b")).await.unwrap();
+    let status = grpc_b.get_job(mcdenoise::grpc::pb::GetJobRequest { id: id.clone() }).await.unwrap_err();
+    assert_eq!(status.code(), tonic::Code::NotFound, "{status:?}");
+    // A submit token does not read the metrics once operator tokens exist.
+    let (status, err) = call(&b, Method::GET, "/metrics".into()).await;
+    assert_eq!((status, err["error"]["code"].as_str()), (StatusCode::FORBIDDEN, Some("forbidden")), "{err}");
+
+    // The operator sees and lists it, and reads the metrics; the owner downloads it.
+    let (status, job) = call(&ops, Method::GET, format!("/v1/jobs/{id}")).await;
+    assert_eq!((status, job["label"].as_str()), (StatusCode::OK, Some("shot-1")), "{job}");
+    let (_, list) = call(&ops, Method::GET, "/v1/jobs".into()).await;
+    assert_eq!(list["jobs"].as_array().map(Vec::len), Some(1), "{list}");
+    assert_eq!(ops.get("/metrics").await.unwrap().status(), StatusCode::OK);
+    assert_eq!(d.result(&id).await.0, StatusCode::OK);
+    let mut grpc_ops = mcdenoise::client::grpc_connect(&d.grpc, Some("ops")).await.unwrap();
+    grpc_ops.delete_job(mcdenoise::grpc::pb::DeleteJobRequest { id: id.clone() }).await.unwrap();
+    assert_eq!(d.get_json(&format!("/v1/jobs/{id}")).await.0, StatusCode::NOT_FOUND);
     d.stop().await;
 }
 

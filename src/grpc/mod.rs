@@ -13,7 +13,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use crate::conn::Protocols;
 
-use crate::auth::{ClientId, Tokens};
+use crate::auth::{Caller, ClientId, Tokens};
 use crate::error::Error;
 use crate::jobs::{Admission, JobEvent, JobOptions, JobService, ListFilter, Phase, UploadPart};
 use crate::wire::{priority_from_pb, state_from_pb};
@@ -42,6 +42,7 @@ pub fn status(e: &Error) -> Status {
         Error::BadRequest(_) | Error::InvalidFrame(_) | Error::TooLarge(_) => Status::invalid_argument(message),
         Error::Timeout(_) => Status::deadline_exceeded(message),
         Error::Unauthenticated(_) => Status::unauthenticated(message),
+        Error::Forbidden(_) => Status::permission_denied(message),
         Error::NotFound(_) => Status::not_found(message),
         Error::Conflict(_) => Status::failed_precondition(message),
         Error::InProgress(_) => Status::aborted(message),
@@ -149,7 +150,7 @@ type ChunkStream = BoxStream<'static, Result<pb::ResultChunk, Status>>;
 #[tonic::async_trait]
 impl Denoiser for Api {
     async fn submit_job(&self, request: Request<Streaming<pb::SubmitJobRequest>>) -> Result<Response<pb::Job>, Status> {
-        let client = client_of(&request);
+        let client = caller_of(&request).id;
         let result = submit_upload(&self.service, &client, request.into_inner()).await;
         if let Err(e) = &result {
             if let Error::Timeout(m) = e {
@@ -161,11 +162,13 @@ impl Denoiser for Api {
     }
 
     async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
-        let result = self.service.get(&request.into_inner().id).map(|s| Response::new(pb::Job::from(&s)));
+        let caller = caller_of(&request);
+        let result = self.service.get(&request.into_inner().id, &caller).map(|s| Response::new(pb::Job::from(&s)));
         self.observe("GetJob", result.map_err(|e| status(&e)))
     }
 
     async fn list_jobs(&self, request: Request<pb::ListJobsRequest>) -> Result<Response<pb::ListJobsResponse>, Status> {
+        let caller = caller_of(&request);
         let r = request.into_inner();
         let result = (|| {
             let filter = ListFilter {
@@ -174,6 +177,7 @@ impl Denoiser for Api {
                 label: Some(r.label).filter(|s| !s.is_empty()),
                 limit: (r.page_size > 0).then_some(r.page_size as usize),
                 after: Some(r.page_token).filter(|s| !s.is_empty()),
+                owner: caller.owner_filter(),
             };
             let (jobs, next) = self.service.list(&filter).map_err(|e| status(&e))?;
             Ok(Response::new(pb::ListJobsResponse {
@@ -185,8 +189,10 @@ impl Denoiser for Api {
     }
 
     async fn cancel_job(&self, request: Request<pb::CancelJobRequest>) -> Result<Response<pb::Job>, Status> {
+        let caller = caller_of(&request);
         let id = request.into_inner().id;
-        let result = self.service.cancel(&id).await.map(|s| Response::new(pb::Job::from(&s))).map_err(|e| status(&e));
+        let result =
+            self.service.cancel(&id, &caller).await.map(|s| Response::new(pb::Job::from(&s))).map_err(|e| status(&e));
         self.observe("CancelJob", result)
     }
 
@@ -194,17 +200,23 @@ impl Denoiser for Api {
         &self,
         request: Request<pb::DeleteJobRequest>,
     ) -> Result<Response<pb::DeleteJobResponse>, Status> {
+        let caller = caller_of(&request);
         let id = request.into_inner().id;
-        let result =
-            self.service.delete(&id).await.map(|()| Response::new(pb::DeleteJobResponse {})).map_err(|e| status(&e));
+        let result = self
+            .service
+            .delete(&id, &caller)
+            .await
+            .map(|()| Response::new(pb::DeleteJobResponse {}))
+            .map_err(|e| status(&e));
         self.observe("DeleteJob", result)
     }
 
     type WatchJobStream = EventStream;
 
     async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
+        let caller = caller_of(&request);
         let id = request.into_inner().id;
-        let result = self.service.events(&id).map_err(|e| status(&e)).map(|events| {
+        let result = self.service.events(&id, &caller).map_err(|e| status(&e)).map(|events| {
             let stream = events
                 .map(move |ev| Ok(event_pb(&id, &ev)))
                 .take_until(self.shutdown.clone().cancelled_owned())
@@ -217,8 +229,9 @@ impl Denoiser for Api {
     type FetchResultStream = ChunkStream;
 
     async fn fetch_result(&self, request: Request<pb::FetchResultRequest>) -> Result<Response<ChunkStream>, Status> {
+        let caller = caller_of(&request);
         let id = request.into_inner().id;
-        let result = self.service.open_result(&id).await.map_err(|e| status(&e)).map(|(file, len)| {
+        let result = self.service.open_result(&id, &caller).await.map_err(|e| status(&e)).map(|(file, len)| {
             let telemetry = self.service.telemetry().clone();
             let mut first = true;
             let stream = tokio_util::io::ReaderStream::with_capacity(file, RESULT_CHUNK_BYTES)
@@ -377,13 +390,18 @@ fn decode_errors_are_invalid_argument(
     response
 }
 
-/// Who is calling: set by [`Auth`] on every API request.
-fn client_of<T>(request: &Request<T>) -> ClientId {
-    request.extensions().get::<ClientId>().cloned().unwrap_or_else(|| ClientId::peer(request.remote_addr()))
+/// Who is calling: set by [`Auth`] on every API request (a request that did not pass it
+/// is named by its address and may see nothing but its own jobs).
+fn caller_of<T>(request: &Request<T>) -> Caller {
+    request.extensions().get::<Caller>().cloned().unwrap_or_else(|| Caller {
+        id: ClientId::peer(request.remote_addr()),
+        scope: crate::auth::Scope::Submit,
+        metrics: false,
+    })
 }
 
 /// Checks `authorization: Bearer <token>` metadata and records who is calling (a
-/// [`ClientId`] extension).
+/// [`Caller`] extension).
 #[derive(Clone)]
 pub struct Auth {
     tokens: Arc<Tokens>,
@@ -392,11 +410,11 @@ pub struct Auth {
 impl tonic::service::Interceptor for Auth {
     fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
         let authorization = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
-        let client = self
+        let caller = self
             .tokens
             .authenticate(authorization, request.remote_addr(), "metadata authorization")
             .map_err(|e| status(&e))?;
-        request.extensions_mut().insert(client);
+        request.extensions_mut().insert(caller);
         Ok(request)
     }
 }

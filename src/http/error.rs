@@ -26,6 +26,7 @@ pub fn status(e: &Error) -> StatusCode {
         Error::TooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
         Error::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
         Error::Unauthenticated(_) => StatusCode::UNAUTHORIZED,
+        Error::Forbidden(_) => StatusCode::FORBIDDEN,
         Error::NotFound(_) => StatusCode::NOT_FOUND,
         Error::Conflict(_) => StatusCode::CONFLICT,
         Error::InProgress(_) => StatusCode::CONFLICT,
@@ -60,6 +61,7 @@ impl IntoResponse for ApiError {
             | Error::InvalidFrame(_)
             | Error::TooLarge(_)
             | Error::Timeout(_)
+            | Error::Forbidden(_)
             | Error::NotFound(_)
             | Error::Conflict(_)
             | Error::InProgress(_)

@@ -29,7 +29,7 @@ use tokio_util::sync::CancellationToken;
 pub use error::ApiError;
 use multipart::{FormData, FormError};
 
-use crate::auth::{ClientId, Tokens};
+use crate::auth::{Caller, ClientId, Tokens};
 use crate::error::Error;
 use crate::jobs::{Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, ListFilter, UploadPart};
 use crate::wire::{JobList, JobView, OptionsQuery};
@@ -172,13 +172,13 @@ pub fn per_peer(
     move |peer| crate::conn::WithExtension::new(router.clone(), ConnectInfo(Peer(peer)))
 }
 
-/// Checks the bearer token and records who is calling (a [`ClientId`] extension).
+/// Checks the bearer token and records who is calling (a [`Caller`] extension).
 async fn authenticate(State(app): State<AppState>, mut request: Request, next: Next) -> Response {
     let peer = request.extensions().get::<ConnectInfo<Peer>>().map(|c| c.0 .0);
     let authorization = request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok());
     match app.tokens.authenticate(authorization, peer, "header Authorization") {
-        Ok(client) => {
-            request.extensions_mut().insert(client);
+        Ok(caller) => {
+            request.extensions_mut().insert(caller);
             next.run(request).await
         }
         Err(e) => ApiError::from(e).into_response(),
@@ -203,7 +203,11 @@ async fn readyz(State(app): State<AppState>) -> Response {
     (code, Json(json!({ "ready": ready, "phase": phase, "storage": storage }))).into_response()
 }
 
-async fn metrics(State(app): State<AppState>) -> Response {
+async fn metrics(State(app): State<AppState>, Extension(caller): Extension<Caller>) -> Response {
+    if !caller.metrics {
+        return ApiError::from(Error::Forbidden("the metrics need a token with the operator scope".into()))
+            .into_response();
+    }
     (
         [(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")],
         app.service.telemetry().render(),
@@ -266,9 +270,10 @@ fn accepted(status: &JobStatus, replayed: bool) -> Response {
 /// (`options` JSON part first, then `frame`, then optionally `reference`).
 async fn submit(
     State(app): State<AppState>,
-    Extension(client): Extension<ClientId>,
+    Extension(caller): Extension<Caller>,
     request: Request,
 ) -> Result<Response, ApiError> {
+    let client = caller.id;
     let gap = app.service.settings().upload_timeout;
     let stalled = Arc::new(AtomicBool::new(false));
     let request = request.map(|body| Body::new(Progress::new(DrainOnDrop(Some(body)), gap, stalled.clone())));
@@ -522,8 +527,12 @@ async fn submit_multipart(
     Ok(accepted(&status, false))
 }
 
-async fn get_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<Json<JobView>, ApiError> {
-    Ok(Json(JobView::from(&app.service.get(&id)?)))
+async fn get_job(
+    State(app): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Json<JobView>, ApiError> {
+    Ok(Json(JobView::from(&app.service.get(&id, &caller)?)))
 }
 
 #[derive(Deserialize)]
@@ -538,30 +547,50 @@ struct ListQuery {
 
 async fn list(
     State(app): State<AppState>,
+    Extension(caller): Extension<Caller>,
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<JobList>, ApiError> {
     let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
     let state = q.state.as_deref().filter(|s| !s.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
     let priority =
         q.priority.as_deref().filter(|p| !p.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
-    let filter = ListFilter { state, priority, label: q.label, limit: q.limit, after: q.page_token };
+    let filter = ListFilter {
+        state,
+        priority,
+        label: q.label,
+        limit: q.limit,
+        after: q.page_token,
+        owner: caller.owner_filter(),
+    };
     let (jobs, next) = app.service.list(&filter)?;
     Ok(Json(JobList { jobs: jobs.iter().map(JobView::from).collect(), next_page_token: next }))
 }
 
-async fn cancel(State(app): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
-    let status = app.service.cancel(&id).await?;
+async fn cancel(
+    State(app): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let status = app.service.cancel(&id, &caller).await?;
     let code = if status.record.state == JobState::Cancelled { StatusCode::OK } else { StatusCode::ACCEPTED };
     Ok((code, Json(JobView::from(&status))).into_response())
 }
 
-async fn delete_job(State(app): State<AppState>, Path(id): Path<String>) -> Result<StatusCode, ApiError> {
-    app.service.delete(&id).await?;
+async fn delete_job(
+    State(app): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    app.service.delete(&id, &caller).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
-async fn result(State(app): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
-    let (file, len) = app.service.open_result(&id).await?;
+async fn result(
+    State(app): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let (file, len) = app.service.open_result(&id, &caller).await?;
     let telemetry = app.service.telemetry().clone();
     let stream = tokio_util::io::ReaderStream::with_capacity(file, 256 * 1024).inspect(move |chunk| {
         if let Ok(c) = chunk {
@@ -594,9 +623,10 @@ pub fn event_json(job_id: &str, ev: &JobEvent) -> Value {
 /// `GET /v1/jobs/{id}/events`: Server-Sent Events, ending after the terminal event.
 async fn events(
     State(app): State<AppState>,
+    Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    let stream = app.service.events(&id)?;
+    let stream = app.service.events(&id, &caller)?;
     let stream = stream
         .map(move |ev| Ok(Event::default().event(ev.name()).data(event_json(&id, &ev).to_string())))
         .take_until(app.shutdown.clone().cancelled_owned());

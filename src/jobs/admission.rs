@@ -200,7 +200,11 @@ impl JobService {
             Error::Storage { full: true, .. } => "storage_full",
             Error::Storage { full: false, .. } => "storage_unavailable",
             Error::Unauthenticated(_) => "unauthenticated",
-            Error::NotFound(_) | Error::Conflict(_) | Error::InProgress(_) | Error::Internal(_) => "other",
+            Error::Forbidden(_)
+            | Error::NotFound(_)
+            | Error::Conflict(_)
+            | Error::InProgress(_)
+            | Error::Internal(_) => "other",
         };
         self.inner.telemetry.job_rejected(reason);
     }

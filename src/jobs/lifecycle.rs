@@ -12,7 +12,8 @@
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
-use super::{not_found, scoped_key, JobService, Journal, State};
+use super::{entry_for, not_found, scoped_key, JobService, Journal, State};
+use crate::auth::Caller;
 use crate::error::{Error, Result};
 use crate::jobs::{
     FireflyCounts, JobError, JobErrorCode, JobEvent, JobMetrics, JobRecord, JobState, JobStatus, Phase, Progress,
@@ -265,16 +266,17 @@ impl JobService {
     // --- Changes asked for by clients ------------------------------------------------------
 
     /// Cancels a queued job at once, or asks a running one to stop at its next tile.
-    pub async fn cancel(&self, id: &str) -> Result<JobStatus> {
-        let id = id.to_string();
-        self.blocking(move |s| s.cancel_now(&id)).await
+    pub async fn cancel(&self, id: &str, caller: &Caller) -> Result<JobStatus> {
+        let (id, caller) = (id.to_string(), caller.clone());
+        self.blocking(move |s| s.cancel_now(&id, &caller)).await
     }
 
-    fn cancel_now(&self, id: &str) -> Result<JobStatus> {
+    fn cancel_now(&self, id: &str, caller: &Caller) -> Result<JobStatus> {
         let journal = self.journal();
         let prepared = {
             let mut st = self.lock();
-            let entry = st.jobs.get_mut(id).ok_or_else(|| not_found(id))?;
+            entry_for(&st, id, caller)?;
+            let entry = st.jobs.get_mut(id).expect("found above, under the same lock");
             match entry.record.state {
                 JobState::Queued => self.prepare(&mut st, id, Ending::Cancelled),
                 JobState::Running => {
@@ -294,16 +296,14 @@ impl JobService {
     }
 
     /// Removes a job with its files (a running job is cancelled first).
-    pub async fn delete(&self, id: &str) -> Result<()> {
-        let id = id.to_string();
-        self.blocking(move |s| s.delete_now(&id)).await
+    pub async fn delete(&self, id: &str, caller: &Caller) -> Result<()> {
+        let (id, caller) = (id.to_string(), caller.clone());
+        self.blocking(move |s| s.delete_now(&id, &caller)).await
     }
 
-    fn delete_now(&self, id: &str) -> Result<()> {
+    fn delete_now(&self, id: &str, caller: &Caller) -> Result<()> {
         let journal = self.journal();
-        if !self.lock().jobs.contains_key(id) {
-            return Err(not_found(id));
-        }
+        entry_for(&self.lock(), id, caller)?;
         self.inner.store.remove(&[id])?;
         let mut st = self.lock();
         let entry = st.jobs.remove(id).expect("present: deletes hold the journal");

@@ -71,7 +71,7 @@ use std::time::Duration;
 use serde::Serialize;
 use tokio::sync::{broadcast, watch};
 
-use crate::auth::ClientId;
+use crate::auth::{Caller, ClientId};
 use crate::config::ServeArgs;
 use crate::engine::{DenoiserFactory, EngineConfig, Fireflies, ModelInfo};
 use crate::error::{Error, Result};
@@ -241,6 +241,12 @@ fn scoped_key(client: Option<&str>, key: &str) -> String {
 
 fn not_found(id: &str) -> Error {
     Error::NotFound(format!("no job {}", crate::error::truncate(id, crate::error::ECHO_CHARS)))
+}
+
+/// Job `id` if `caller` may see it; another client's job answers like a missing one, so
+/// that job ids say nothing about other clients' work.
+fn entry_for<'a>(st: &'a State, id: &str, caller: &Caller) -> Result<&'a Entry> {
+    st.jobs.get(id).filter(|e| caller.may_access(e.record.client.as_deref())).ok_or_else(|| not_found(id))
 }
 
 impl JobService {

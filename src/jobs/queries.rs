@@ -6,7 +6,8 @@
 use futures_util::stream::{self, BoxStream, StreamExt};
 use tokio::sync::broadcast;
 
-use super::{not_found, Entry, JobService};
+use super::{entry_for, not_found, Entry, JobService};
+use crate::auth::Caller;
 use crate::error::{Error, Result};
 use crate::jobs::{JobEvent, JobState, JobStatus, Priority};
 
@@ -23,12 +24,14 @@ pub struct ListFilter {
     pub label: Option<String>,
     pub limit: Option<usize>,
     pub after: Option<String>,
+    /// Only jobs submitted by this client (`Caller::owner_filter`).
+    pub owner: Option<String>,
 }
 
 impl JobService {
-    pub fn get(&self, id: &str) -> Result<JobStatus> {
+    pub fn get(&self, id: &str, caller: &Caller) -> Result<JobStatus> {
         let st = self.lock();
-        let entry = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        let entry = entry_for(&st, id, caller)?;
         Ok(self.status_of(&st, entry))
     }
 
@@ -56,6 +59,7 @@ impl JobService {
             .filter(|e| {
                 let r = &e.record;
                 after.is_none_or(|a| r.seq > a)
+                    && filter.owner.as_deref().is_none_or(|o| r.client.as_deref().is_none_or(|c| c == o))
                     && filter.state.is_none_or(|s| r.state == s)
                     && filter.priority.is_none_or(|p| r.options.priority == p)
                     && filter.label.as_deref().is_none_or(|l| r.options.label.as_deref() == Some(l))
@@ -69,17 +73,17 @@ impl JobService {
     }
 
     /// The current status and a receiver of every later event, taken atomically.
-    pub fn watch(&self, id: &str) -> Result<(JobStatus, broadcast::Receiver<JobEvent>)> {
+    pub fn watch(&self, id: &str, caller: &Caller) -> Result<(JobStatus, broadcast::Receiver<JobEvent>)> {
         let st = self.lock();
-        let entry = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+        let entry = entry_for(&st, id, caller)?;
         Ok((self.status_of(&st, entry), entry.events.subscribe()))
     }
 
     /// The job's events: its current state first (`queued`; or `started` and `progress`;
     /// or the terminal event), then every change, ending after the terminal event (or
     /// when the job is deleted).
-    pub fn events(&self, id: &str) -> Result<BoxStream<'static, JobEvent>> {
-        let (status, rx) = self.watch(id)?;
+    pub fn events(&self, id: &str, caller: &Caller) -> Result<BoxStream<'static, JobEvent>> {
+        let (status, rx) = self.watch(id, caller)?;
         let r = &status.record;
         let initial = match r.state {
             JobState::Queued => vec![JobEvent::Queued { status: Box::new(status.clone()) }],
@@ -106,10 +110,10 @@ impl JobService {
     }
 
     /// Opens the result of a succeeded job: the file and its size.
-    pub async fn open_result(&self, id: &str) -> Result<(tokio::fs::File, u64)> {
+    pub async fn open_result(&self, id: &str, caller: &Caller) -> Result<(tokio::fs::File, u64)> {
         {
             let st = self.lock();
-            let entry = st.jobs.get(id).ok_or_else(|| not_found(id))?;
+            let entry = entry_for(&st, id, caller)?;
             match entry.record.state {
                 JobState::Succeeded => {}
                 s => {

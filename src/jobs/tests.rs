@@ -172,8 +172,11 @@ impl Harness {
 
     /// Uploads a synthetic frame `width` pixels wide and commits it.
     async fn submit(&self, width: usize, options: JobOptions) -> Result<Admitted> {
-        let client = ClientId("test".into());
-        let mut ticket = match self.service.admit(options, "test", &client)? {
+        self.submit_as(&ops().id, width, options).await
+    }
+
+    async fn submit_as(&self, client: &ClientId, width: usize, options: JobOptions) -> Result<Admitted> {
+        let mut ticket = match self.service.admit(options, "test", client)? {
             Admission::Existing(status) => return Ok(Admitted::Existing(status)),
             Admission::New(t) => t,
         };
@@ -192,9 +195,9 @@ impl Harness {
 
     /// Waits (on the job's events, not on time) until `pred` holds for its status.
     async fn until(&self, id: &str, what: &str, pred: impl Fn(&JobStatus) -> bool) -> JobStatus {
-        let mut events = self.service.events(id).unwrap();
+        let mut events = self.service.events(id, &ops()).unwrap();
         loop {
-            let status = self.service.get(id).unwrap();
+            let status = self.service.get(id, &ops()).unwrap();
             if pred(&status) {
                 return status;
             }
@@ -228,6 +231,11 @@ fn frame_bytes(w: usize, h: usize) -> Vec<u8> {
     crate::frame::write_planes(w, h, named, SampleType::F32, exr::prelude::Encoding::FAST_LOSSLESS).unwrap()
 }
 
+/// The caller the tests act as: an operator, allowed every job.
+fn ops() -> Caller {
+    Caller::operator(ClientId("test".into()))
+}
+
 fn options(priority: Priority) -> JobOptions {
     JobOptions { priority, ..Default::default() }
 }
@@ -247,7 +255,7 @@ async fn admission_refuses_over_capacity_replays_keys_and_runs_by_priority() {
     }
     let normal = h.submit_new(43, options(Priority::Normal)).await;
     let positions: Vec<u64> =
-        [&high, &normal, &low].iter().map(|id| h.service.get(id).unwrap().queue_position).collect();
+        [&high, &normal, &low].iter().map(|id| h.service.get(id, &ops()).unwrap().queue_position).collect();
     assert_eq!(positions, [1, 2, 3]);
     match h.submit(44, options(Priority::High)).await {
         Err(Error::QueueFull { capacity: 3, retry_after_s }) => assert!(retry_after_s >= 1),
@@ -270,18 +278,18 @@ async fn cancel_ends_a_queued_job_at_once_and_a_running_one_at_its_next_tile() {
     h.until_state(&running, JobState::Running).await;
     let queued = h.submit_new(32, options(Priority::Normal)).await;
 
-    let s = h.service.cancel(&queued).await.unwrap();
+    let s = h.service.cancel(&queued, &ops()).await.unwrap();
     assert_eq!(s.record.state, JobState::Cancelled);
     assert!(s.record.cancel_requested && s.record.finished_at_ms.is_some());
     assert!(!h.dir.path().join("jobs").join(&queued).join("input.exr").exists(), "inputs removed");
-    assert!(matches!(h.service.cancel(&queued).await, Err(Error::Conflict(_))));
+    assert!(matches!(h.service.cancel(&queued, &ops()).await, Err(Error::Conflict(_))));
 
-    let s = h.service.cancel(&running).await.unwrap();
+    let s = h.service.cancel(&running, &ops()).await.unwrap();
     assert_eq!((s.record.state, s.record.cancel_requested), (JobState::Running, true));
     h.gate.release(1);
     let s = h.until_state(&running, JobState::Cancelled).await;
     assert_eq!(s.record.progress.tiles_done, 1, "stopped after its first of two tiles");
-    assert!(matches!(h.service.open_result(&running).await, Err(Error::Conflict(_))));
+    assert!(matches!(h.service.open_result(&running, &ops()).await, Err(Error::Conflict(_))));
     h.stop();
 }
 
@@ -294,10 +302,10 @@ async fn deadlines_fail_queued_jobs_in_the_sweep_and_running_jobs_between_tiles(
 
     tokio::time::advance(Duration::from_secs(4)).await;
     h.service.sweep().await.unwrap();
-    assert_eq!(h.service.get(&queued).unwrap().record.state, JobState::Queued);
+    assert_eq!(h.service.get(&queued, &ops()).unwrap().record.state, JobState::Queued);
     tokio::time::advance(Duration::from_secs(2)).await;
     h.service.sweep().await.unwrap();
-    let s = h.service.get(&queued).unwrap();
+    let s = h.service.get(&queued, &ops()).unwrap();
     assert_eq!(s.record.state, JobState::Failed);
     let error = s.record.error.unwrap();
     assert_eq!(error.code, JobErrorCode::DeadlineExceeded);
@@ -313,6 +321,33 @@ async fn deadlines_fail_queued_jobs_in_the_sweep_and_running_jobs_between_tiles(
 }
 
 #[tokio::test(start_paused = true)]
+async fn a_job_is_seen_and_changed_only_by_its_owner_or_an_operator() {
+    let h = Harness::start(settings(8), Gate::closed()).await;
+    let node = |name: &str| Caller { id: ClientId(name.into()), scope: crate::auth::Scope::Submit, metrics: false };
+    let (a, b) = (node("token:aaaa"), node("token:bbbb"));
+    let mine = match h.submit_as(&a.id, 32, options(Priority::Normal)).await.unwrap() {
+        Admitted::New(s) => s.record.id,
+        Admitted::Existing(s) => panic!("new job expected, got {}", s.record.id),
+    };
+    // Another client's job answers exactly like a missing one, for every operation.
+    assert!(matches!(h.service.get(&mine, &b), Err(Error::NotFound(_))));
+    assert!(matches!(h.service.events(&mine, &b), Err(Error::NotFound(_))));
+    assert!(matches!(h.service.open_result(&mine, &b).await, Err(Error::NotFound(_))));
+    assert!(matches!(h.service.cancel(&mine, &b).await, Err(Error::NotFound(_))));
+    assert!(matches!(h.service.delete(&mine, &b).await, Err(Error::NotFound(_))));
+    let owned = |c: &Caller| ListFilter { owner: c.owner_filter(), ..Default::default() };
+    assert!(h.service.list(&owned(&b)).unwrap().0.is_empty());
+    assert_eq!(h.service.list(&owned(&a)).unwrap().0.len(), 1);
+    assert_eq!(h.service.list(&owned(&ops())).unwrap().0.len(), 1, "operators list every job");
+    // The owner and operators may.
+    assert_eq!(h.service.get(&mine, &a).unwrap().record.client.as_deref(), Some("token:aaaa"));
+    assert_eq!(h.service.get(&mine, &ops()).unwrap().record.id, mine);
+    h.service.cancel(&mine, &a).await.unwrap();
+    h.service.delete(&mine, &ops()).await.unwrap();
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
 async fn finished_jobs_are_kept_for_the_retention_time_then_removed() {
     let gate = Gate::closed();
     gate.open();
@@ -320,14 +355,14 @@ async fn finished_jobs_are_kept_for_the_retention_time_then_removed() {
     let id = h.submit_new(32, JobOptions { label: Some("kept".into()), ..Default::default() }).await;
     let s = h.until_state(&id, JobState::Succeeded).await;
     assert_eq!(s.record.expires_at_ms.unwrap() - s.record.finished_at_ms.unwrap(), 60_000);
-    let (_file, len) = h.service.open_result(&id).await.unwrap();
+    let (_file, len) = h.service.open_result(&id, &ops()).await.unwrap();
     assert_eq!(Some(len), s.record.result_bytes);
 
     tokio::time::advance(Duration::from_secs(59)).await;
     assert_eq!(h.service.sweep().await.unwrap(), 0);
     tokio::time::advance(Duration::from_secs(2)).await;
     assert_eq!(h.service.sweep().await.unwrap(), 1);
-    assert!(matches!(h.service.get(&id), Err(Error::NotFound(_))));
+    assert!(matches!(h.service.get(&id, &ops()), Err(Error::NotFound(_))));
     assert!(!h.dir.path().join("jobs").join(&id).exists(), "its files go too");
     h.stop();
 }
@@ -410,13 +445,13 @@ async fn recovery_after_a_crash_requeues_adopts_fails_and_forgets_as_documented(
 
     let s = h.until_state("interrupted", JobState::Succeeded).await;
     assert_eq!(s.record.attempts, 2, "ran again after the interrupted attempt");
-    let s = h.service.get("finished").unwrap();
+    let s = h.service.get("finished", &ops()).unwrap();
     assert_eq!((s.record.state, s.record.result_bytes), (JobState::Succeeded, Some(4)));
     assert_eq!(h.seen.lock().unwrap().len(), 1, "the adopted job did not run again");
-    let s = h.service.get("lost").unwrap();
+    let s = h.service.get("lost", &ops()).unwrap();
     assert_eq!(s.record.state, JobState::Failed);
     assert!(s.record.error.unwrap().message.contains("uploaded frame is missing"));
-    assert!(matches!(h.service.get("expired"), Err(Error::NotFound(_))));
+    assert!(matches!(h.service.get("expired", &ops()), Err(Error::NotFound(_))));
     let jobs = h.dir.path().join("jobs");
     assert!(!jobs.join("expired").exists() && !jobs.join("orphan").exists());
     assert!(!jobs.join("interrupted").join("result.exr.part").exists());
@@ -448,8 +483,12 @@ async fn a_lost_or_rolled_back_database_is_rebuilt_from_the_job_directories() {
     gate.open();
     let h = Harness::start_in(dir, settings(8), gate).await;
     h.until_state("queued", JobState::Succeeded).await;
-    assert_eq!(h.service.get("done").unwrap().record.state, JobState::Succeeded);
-    assert_eq!(h.service.get("cancelled").unwrap().record.state, JobState::Cancelled, "no terminal state reversed");
+    assert_eq!(h.service.get("done", &ops()).unwrap().record.state, JobState::Succeeded);
+    assert_eq!(
+        h.service.get("cancelled", &ops()).unwrap().record.state,
+        JobState::Cancelled,
+        "no terminal state reversed"
+    );
     assert_eq!(h.seen.lock().unwrap().len(), 1, "only the queued job ran");
     h.stop();
 }
@@ -483,10 +522,10 @@ async fn what_no_record_accounts_for_is_quarantined_not_deleted() {
 async fn deleting_a_running_job_removes_it_and_its_files_when_the_run_ends() {
     let h = Harness::start(settings(8), Gate::closed()).await;
     let id = h.submit_new(64, options(Priority::Normal)).await;
-    let mut events = h.service.events(&id).unwrap();
+    let mut events = h.service.events(&id, &ops()).unwrap();
     h.until_state(&id, JobState::Running).await;
-    h.service.delete(&id).await.unwrap();
-    assert!(matches!(h.service.get(&id), Err(Error::NotFound(_))));
+    h.service.delete(&id, &ops()).await.unwrap();
+    assert!(matches!(h.service.get(&id, &ops()), Err(Error::NotFound(_))));
     while events.next().await.is_some() {}
     h.gate.release(2);
     // The worker notices at its next tile; then nothing of the job is left.
