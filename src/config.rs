@@ -85,6 +85,11 @@ pub struct ServeArgs {
     /// Address of the gRPC API (mcdenoise.v1.Denoiser, grpc.health.v1, reflection).
     #[arg(long, env = "MCDENOISE_GRPC", default_value = "0.0.0.0:50051", help_heading = "Listeners")]
     pub grpc: SocketAddr,
+    /// Optional address of a probe listener: /livez, /readyz and /metrics only, plain
+    /// HTTP, with connection caps of its own, so that probes keep answering while the API
+    /// ports are flooded.
+    #[arg(long, env = "MCDENOISE_PROBE_HTTP", help_heading = "Listeners")]
+    pub probe_http: Option<SocketAddr>,
 
     // --- Storage -------------------------------------------------------------------
     /// Directory of the job store (jobs.redb and the jobs' frames and results). Created
@@ -188,6 +193,15 @@ pub struct ServeArgs {
     pub tls_key: Option<PathBuf>,
 
     // --- Connections -------------------------------------------------------------------
+    /// Open connections on the HTTP and gRPC API listeners together; more are closed at
+    /// once. Kept 256 below the open-file limit, which is raised to its hard maximum at
+    /// start.
+    #[arg(long, env = "MCDENOISE_MAX_CONNECTIONS", default_value_t = 4096, value_parser = clap::value_parser!(u32).range(1..), help_heading = "Connections")]
+    pub max_connections: u32,
+    /// Open connections from one address (behind a proxy or NAT all its clients share
+    /// one: raise it there).
+    #[arg(long, env = "MCDENOISE_MAX_CONNECTIONS_PER_PEER", default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..), help_heading = "Connections")]
+    pub max_connections_per_peer: u32,
     /// A TLS handshake not finished by then is dropped (each runs in its connection's own
     /// task: stalled handshakes hold up no one else).
     #[arg(long, env = "MCDENOISE_TLS_HANDSHAKE_TIMEOUT", default_value = "10s", value_parser = parse_duration, help_heading = "Connections")]
@@ -305,6 +319,9 @@ impl ServeArgs {
         serde_json::json!({
             "http": self.http.to_string(),
             "grpc": self.grpc.to_string(),
+            "probe_http": self.probe_http.map(|a| a.to_string()),
+            "max_connections": self.max_connections,
+            "max_connections_per_peer": self.max_connections_per_peer,
             "data_dir": self.data_dir,
             "models": self.models,
             "workers": self.workers(),

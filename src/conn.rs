@@ -12,14 +12,24 @@
 //! | HTTP/2 and gRPC peers | a PING every interval, closed when unanswered | `--keepalive-interval`, `--keepalive-timeout` |
 //! | upload bodies | no byte for this long: refused with 408 / DEADLINE_EXCEEDED, its slot released | `--upload-timeout` (in `http` and `grpc`) |
 //!
+//! Connections are counted, in total and per peer address, over both API listeners
+//! ([`Admission`]): past `--max-connections` or `--max-connections-per-peer` a new
+//! connection is closed at once, before any byte is read, and counted in
+//! `mcdenoise_connections_refused_total{reason}`. The total is kept below the process's
+//! file limit (raised to its hard maximum at start, [`raise_file_limit`]), so a flood
+//! cannot use up the descriptors the job store and the probes need. The optional probe
+//! listener (`--probe-http`) has an admission of its own: a flood of the API ports does
+//! not reach it.
+//!
 //! Shutdown: when `shutdown` is cancelled the accept loop stops and every connection is
 //! asked to close gracefully; [`serve`] returns once all have. Dropping (aborting) the
 //! future of [`serve`] drops every connection at once.
 
-use std::net::SocketAddr;
+use std::collections::HashMap;
+use std::net::{IpAddr, SocketAddr};
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, PoisonError};
 use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 
@@ -45,6 +55,113 @@ pub struct Timeouts {
 }
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+/// Descriptors kept free of connections for the job store, the models and the logs.
+pub const RESERVED_FILES: u64 = 256;
+
+/// Raises the soft limit on open files to the hard one; returns the soft limit in force
+/// afterwards (`None` when it is unlimited or cannot be read).
+pub fn raise_file_limit() -> Option<u64> {
+    use rustix::process::{getrlimit, setrlimit, Resource};
+    let mut limit = getrlimit(Resource::Nofile);
+    if limit.current != limit.maximum {
+        let raised = rustix::process::Rlimit { current: limit.maximum, maximum: limit.maximum };
+        match setrlimit(Resource::Nofile, raised) {
+            Ok(()) => limit = getrlimit(Resource::Nofile),
+            Err(e) => tracing::warn!(error = %e, "cannot raise the open-file limit to its hard maximum"),
+        }
+    }
+    limit.current
+}
+
+/// The connection cap to use: `wanted`, kept [`RESERVED_FILES`] below the file limit.
+pub fn connection_cap(wanted: usize, file_limit: Option<u64>) -> usize {
+    match file_limit {
+        Some(limit) => wanted.min(limit.saturating_sub(RESERVED_FILES).max(1) as usize),
+        None => wanted,
+    }
+}
+
+/// Open connections in total and per peer address, shared by the listeners it is given to.
+pub struct Admission {
+    /// The listeners' name in the metrics (`api`, `probe`).
+    listener: &'static str,
+    total: usize,
+    per_peer: usize,
+    open: Mutex<(usize, HashMap<IpAddr, usize>)>,
+    telemetry: Arc<crate::telemetry::Telemetry>,
+}
+
+/// Why a connection was closed at once.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Refusal {
+    Total,
+    PerPeer,
+}
+
+impl Refusal {
+    pub fn name(self) -> &'static str {
+        match self {
+            Refusal::Total => "total",
+            Refusal::PerPeer => "per_peer",
+        }
+    }
+}
+
+impl Admission {
+    pub fn new(
+        listener: &'static str,
+        total: usize,
+        per_peer: usize,
+        telemetry: Arc<crate::telemetry::Telemetry>,
+    ) -> Arc<Admission> {
+        Arc::new(Admission { listener, total, per_peer, open: Mutex::new((0, HashMap::new())), telemetry })
+    }
+
+    /// A place for a connection from `peer`, given back when the [`Permit`] drops.
+    pub fn admit(self: &Arc<Self>, peer: IpAddr) -> Result<Permit, Refusal> {
+        let mut open = self.open.lock().unwrap_or_else(PoisonError::into_inner);
+        let (total, peers) = &mut *open;
+        let from_peer = peers.get(&peer).copied().unwrap_or(0);
+        let refusal = if *total >= self.total {
+            Some(Refusal::Total)
+        } else if from_peer >= self.per_peer {
+            Some(Refusal::PerPeer)
+        } else {
+            None
+        };
+        if let Some(r) = refusal {
+            drop(open);
+            self.telemetry.connection_refused(self.listener, r.name());
+            return Err(r);
+        }
+        *total += 1;
+        peers.insert(peer, from_peer + 1);
+        self.telemetry.set_connections(self.listener, *total);
+        Ok(Permit { admission: self.clone(), peer })
+    }
+}
+
+/// One admitted connection's place.
+pub struct Permit {
+    admission: Arc<Admission>,
+    peer: IpAddr,
+}
+
+impl Drop for Permit {
+    fn drop(&mut self) {
+        let mut open = self.admission.open.lock().unwrap_or_else(PoisonError::into_inner);
+        let (total, peers) = &mut *open;
+        *total -= 1;
+        if let Some(n) = peers.get_mut(&self.peer) {
+            *n -= 1;
+            if *n == 0 {
+                peers.remove(&self.peer);
+            }
+        }
+        self.admission.telemetry.set_connections(self.admission.listener, *total);
+    }
+}
 
 /// The service of one connection: HTTP requests in, responses with a [`ConnBody`] out.
 pub trait ConnService<B>:
@@ -92,6 +209,7 @@ pub async fn serve<F, S, B>(
     tls: Option<Arc<ServerConfig>>,
     protocols: Protocols,
     timeouts: Timeouts,
+    admission: Arc<Admission>,
     service: F,
     shutdown: CancellationToken,
 ) -> std::io::Result<()>
@@ -127,10 +245,18 @@ where
                 }
             },
         };
+        let permit = match admission.admit(peer.ip()) {
+            Ok(p) => p,
+            Err(refusal) => {
+                tracing::debug!(%peer, reason = refusal.name(), "connection refused: too many open");
+                continue;
+            }
+        };
         let _ = stream.set_nodelay(true);
         let svc = TowerToHyperService::new(service(peer));
         let (builder, acceptor, shutdown) = (builder.clone(), acceptor.clone(), shutdown.clone());
         connections.spawn(async move {
+            let _permit = permit;
             let activity = Activity::new();
             let io = Watched { io: stream, activity: activity.clone() };
             match acceptor {

@@ -35,6 +35,8 @@ const WORKER_GRACE: Duration = Duration::from_secs(60);
 pub struct Server {
     pub http_addr: SocketAddr,
     pub grpc_addr: SocketAddr,
+    /// The probe listener's address (`--probe-http`).
+    pub probe_addr: Option<SocketAddr>,
     pub service: JobService,
     trigger: CancellationToken,
     task: JoinHandle<anyhow::Result<()>>,
@@ -68,7 +70,32 @@ impl Server {
     ) -> anyhow::Result<Server> {
         let http_addr = http.local_addr()?;
         let grpc_addr = grpc.local_addr()?;
+        let probe = match args.probe_http {
+            Some(addr) => {
+                Some(TcpListener::bind(addr).await.with_context(|| format!("cannot listen on {addr} (probe HTTP)"))?)
+            }
+            None => None,
+        };
+        let probe_addr = probe.as_ref().map(TcpListener::local_addr).transpose()?;
         let telemetry = Arc::new(Telemetry::new());
+        let file_limit = crate::conn::raise_file_limit();
+        let max_connections = crate::conn::connection_cap(args.max_connections as usize, file_limit);
+        if max_connections < args.max_connections as usize {
+            tracing::warn!(
+                wanted = args.max_connections,
+                file_limit,
+                max_connections,
+                "--max-connections lowered to stay below the open-file limit"
+            );
+        }
+        let admission = crate::conn::Admission::new(
+            "api",
+            max_connections,
+            args.max_connections_per_peer as usize,
+            telemetry.clone(),
+        );
+        // The probe port has its own small caps: a flood of the API ports cannot fill them.
+        let probe_admission = crate::conn::Admission::new("probe", 64, 16, telemetry.clone());
         // Before the job store and the workers: a bad certificate stops the start cleanly.
         let tls = crate::tls::Tls::load(args.tls_cert.as_deref(), args.tls_key.as_deref())?;
         let settings = Settings::from_args(&args);
@@ -89,25 +116,52 @@ impl Server {
             tls.as_ref().map(|t| t.http.clone()),
             crate::conn::Protocols::Http,
             timeouts,
-            crate::http::per_peer(crate::http::router(state)),
+            admission.clone(),
+            crate::http::per_peer(crate::http::router(state.clone())),
             stop.clone(),
         ));
-        let grpc_task =
-            tokio::spawn(crate::grpc::serve(grpc, service.clone(), tokens, tls.clone(), timeouts, stop.clone()));
+        let probe_task = probe.map(|listener| {
+            tokio::spawn(crate::conn::serve(
+                listener,
+                None,
+                crate::conn::Protocols::Http,
+                timeouts,
+                probe_admission,
+                crate::http::per_peer(crate::http::probe_router(state)),
+                stop.clone(),
+            ))
+        });
+        let grpc_task = tokio::spawn(crate::grpc::serve(
+            grpc,
+            service.clone(),
+            tokens,
+            tls.clone(),
+            timeouts,
+            admission,
+            stop.clone(),
+        ));
         let janitor = tokio::spawn(janitor(service.clone(), args.janitor_interval, stop.clone()));
         let storage = tokio::spawn(storage_checks(service.clone(), args.storage_check_interval, stop.clone()));
-        tracing::info!(http = %http_addr, grpc = %grpc_addr, tls = tls.is_some(), "listening");
+        tracing::info!(
+            http = %http_addr,
+            grpc = %grpc_addr,
+            probe = probe_addr.map(tracing::field::display),
+            tls = tls.is_some(),
+            max_connections,
+            file_limit,
+            "listening"
+        );
 
         let task = tokio::spawn(run(
             service.clone(),
             workers,
             trigger.clone(),
             stop,
-            Transports { http: http_task, grpc: grpc_task, janitor, storage },
+            Transports { http: http_task, grpc: grpc_task, probe: probe_task, janitor, storage },
             args.shutdown_timeout,
             lock,
         ));
-        Ok(Server { http_addr, grpc_addr, service, trigger, task })
+        Ok(Server { http_addr, grpc_addr, probe_addr, service, trigger, task })
     }
 
     /// Starts the graceful shutdown (returns at once; see [`Server::wait`]).
@@ -131,6 +185,7 @@ impl Server {
 struct Transports {
     http: JoinHandle<std::io::Result<()>>,
     grpc: JoinHandle<anyhow::Result<()>>,
+    probe: Option<JoinHandle<std::io::Result<()>>>,
     janitor: JoinHandle<()>,
     storage: JoinHandle<()>,
 }
@@ -199,6 +254,10 @@ async fn run(
             tracing::warn!(transport = name, "connections still open after the grace period: closing them");
             handle.abort();
         }
+    }
+    if let Some(probe) = transports.probe {
+        // Probes are answered until the API is closed; their connections are short.
+        probe.abort();
     }
     let _ = transports.janitor.await;
     let _ = transports.storage.await;

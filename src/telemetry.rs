@@ -75,6 +75,8 @@ pub struct Telemetry {
     jobs_interrupted: Counter,
     jobs_in_flight: Gauge,
     uploads_in_progress: Gauge,
+    connections: Family<Labels, Gauge>,
+    connections_refused: Family<Labels, Counter>,
     stage_seconds: Family<Labels, Histogram, fn() -> Histogram>,
     bytes_received: Family<Labels, Counter>,
     bytes_sent: Family<Labels, Counter>,
@@ -123,6 +125,8 @@ impl Telemetry {
             jobs_interrupted: Counter::default(),
             jobs_in_flight: Gauge::default(),
             uploads_in_progress: Gauge::default(),
+            connections: Family::default(),
+            connections_refused: Family::default(),
             stage_seconds: Family::new_with_constructor(stage_histogram),
             bytes_received: Family::default(),
             bytes_sent: Family::default(),
@@ -159,6 +163,16 @@ impl Telemetry {
             "uploads_in_progress",
             "Submissions whose frame is being received (each holds a place in the queue capacity)",
             t.uploads_in_progress.clone(),
+        );
+        registry.register(
+            "connections",
+            "Open connections on the API listeners (HTTP and gRPC)",
+            t.connections.clone(),
+        );
+        registry.register(
+            "connections_refused",
+            "Connections closed at once because too many were open, by listener and cap (total, per_peer)",
+            t.connections_refused.clone(),
         );
         registry.register(
             "stage_duration_seconds",
@@ -236,6 +250,12 @@ impl Telemetry {
         for s in STAGES {
             let _ = t.stage_seconds.get_or_create(&labels(&[("stage", s)]));
         }
+        for l in ["api", "probe"] {
+            t.connections.get_or_create(&labels(&[("listener", l)])).set(0);
+            for r in ["total", "per_peer"] {
+                let _ = t.connections_refused.get_or_create(&labels(&[("listener", l), ("reason", r)]));
+            }
+        }
         *t.registry.lock().unwrap() = registry;
         t
     }
@@ -297,6 +317,14 @@ impl Telemetry {
 
     pub fn set_uploads(&self, n: usize) {
         self.uploads_in_progress.set(n as i64);
+    }
+
+    pub fn set_connections(&self, listener: &str, n: usize) {
+        self.connections.get_or_create(&labels(&[("listener", listener)])).set(n as i64);
+    }
+
+    pub fn connection_refused(&self, listener: &str, reason: &str) {
+        self.connections_refused.get_or_create(&labels(&[("listener", listener), ("reason", reason)])).inc();
     }
 
     pub fn observe_stage(&self, stage: &str, ms: f64) {

@@ -307,7 +307,9 @@ async fn a_stalled_grpc_upload_gets_deadline_exceeded_and_frees_its_slot() {
 async fn stalled_tls_handshakes_leave_https_readyz_answering() {
     let dir = tempfile::tempdir().unwrap();
     let (ca, mut flags) = tls_flags(dir.path());
-    flags.extend(["--tls-handshake-timeout".to_string(), "3s".to_string()]);
+    // One peer (loopback) makes all 300: its per-address cap is raised above that here;
+    // `connection_caps_close_floods_and_the_probe_port_keeps_answering` tests the cap.
+    flags.extend(["--tls-handshake-timeout", "3s", "--max-connections-per-peer", "400"].map(String::from));
     let flags: Vec<&str> = flags.iter().map(String::as_str).collect();
     let p = spawn_daemon(&dir.path().join("data"), &flags);
     let addr: std::net::SocketAddr = authority(&p.http).parse().unwrap();
@@ -466,4 +468,104 @@ async fn a_second_client_reusing_a_key_gets_its_own_job() {
     let (again, _, replayed) = submit(&b, frame(32, 16)).await;
     assert_eq!((again.as_str(), replayed), (b_id.as_str(), true));
     d.stop().await;
+}
+
+/// The `listening` log line of a spawned daemon.
+fn listening(p: &Process) -> Value {
+    let logs = p.logs.lock().unwrap();
+    logs.iter()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .find(|v| v["message"] == "listening")
+        .expect("a listening line")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn connection_caps_close_floods_and_the_probe_port_keeps_answering() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = spawn_daemon(
+        dir.path(),
+        &["--max-connections", "6", "--max-connections-per-peer", "4", "--probe-http", "127.0.0.1:0"],
+    );
+    let probe = HttpClient::new(&format!("http://{}", listening(&p)["probe"].as_str().unwrap()), None);
+    // Ready through the probe port: a pooled client connection to the API would take a
+    // place of its own.
+    wait_ready(&probe).await;
+    let api: std::net::SocketAddr = authority(&p.http).parse().unwrap();
+    let from = |ip: &str| {
+        let ip: std::net::IpAddr = ip.parse().unwrap();
+        async move {
+            let socket = tokio::net::TcpSocket::new_v4().unwrap();
+            socket.bind((ip, 0).into()).unwrap();
+            socket.connect(api).await.unwrap()
+        }
+    };
+    let open_api = || async {
+        let (_, m) = get_json(&probe, "/metrics").await.unwrap();
+        metric(m.as_str().unwrap(), "mcdenoise_connections{listener=\"api\"}")
+    };
+
+    // Four idle connections from 127.0.0.1 fill its share: a fifth is closed at once.
+    let mut held = Vec::new();
+    for _ in 0..4 {
+        held.push(from("127.0.0.1").await);
+    }
+    poll("4 connections open", Duration::from_secs(10), || async {
+        match open_api().await {
+            4.0 => Ok(()),
+            n => Err(n),
+        }
+    })
+    .await;
+    let mut fifth = from("127.0.0.1").await;
+    wait_closed(&mut fifth, Duration::from_secs(5)).await;
+    // Another address still gets in, up to the total of 6; the seventh is closed.
+    held.push(from("127.0.0.2").await);
+    held.push(from("127.0.0.2").await);
+    poll("6 connections open", Duration::from_secs(10), || async {
+        match open_api().await {
+            6.0 => Ok(()),
+            n => Err(n),
+        }
+    })
+    .await;
+    let mut seventh = from("127.0.0.2").await;
+    wait_closed(&mut seventh, Duration::from_secs(5)).await;
+
+    // The probe port answers throughout, and counts the refusals.
+    let (status, ready) = get_json(&probe, "/readyz").await.unwrap();
+    assert_eq!(status, StatusCode::OK, "{ready}");
+    let (_, m) = get_json(&probe, "/metrics").await.unwrap();
+    let m = m.as_str().unwrap();
+    assert_eq!(metric(m, "mcdenoise_connections_refused_total{listener=\"api\",reason=\"per_peer\"}"), 1.0);
+    assert_eq!(metric(m, "mcdenoise_connections_refused_total{listener=\"api\",reason=\"total\"}"), 1.0);
+    let (status, _) = get_json(&probe, "/v1/jobs").await.unwrap();
+    assert_eq!(status, StatusCode::NOT_FOUND, "the probe port serves probes only");
+
+    // Closed, they give their places back.
+    drop(held);
+    let http = HttpClient::new(&p.http, None);
+    poll("the API answering again", Duration::from_secs(10), || async {
+        match get_json(&http, "/readyz").await {
+            Some((StatusCode::OK, _)) => Ok(()),
+            other => Err(format!("{other:?}")),
+        }
+    })
+    .await;
+}
+
+#[test]
+fn the_file_limit_is_raised_and_the_connection_cap_kept_below_it() {
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    // Soft limit 300 under a hard limit of 1024: raised to 1024 at start, and the cap of
+    // 100000 connections lowered to 1024 - 256.
+    let p = spawn_daemon_with(dir.path(), &["--max-connections", "100000"], |c| unsafe {
+        c.pre_exec(|| {
+            let limit = rustix::process::Rlimit { current: Some(300), maximum: Some(1024) };
+            rustix::process::setrlimit(rustix::process::Resource::Nofile, limit).map_err(std::io::Error::from)
+        });
+    });
+    let line = listening(&p);
+    assert_eq!(line["file_limit"], 1024, "{line}");
+    assert_eq!(line["max_connections"], 1024 - 256, "{line}");
 }

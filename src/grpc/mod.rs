@@ -426,6 +426,7 @@ pub async fn serve(
     tokens: Arc<Tokens>,
     tls: Option<crate::tls::Tls>,
     timeouts: crate::conn::Timeouts,
+    admission: Arc<crate::conn::Admission>,
     shutdown: CancellationToken,
 ) -> anyhow::Result<()> {
     let auth = Auth { tokens };
@@ -479,7 +480,7 @@ pub async fn serve(
         crate::conn::WithExtension::new(routes.clone(), info)
     };
     let tls = tls.map(|t| t.grpc);
-    let result = crate::conn::serve(listener, tls, Protocols::Http2, timeouts, per_peer, shutdown).await;
+    let result = crate::conn::serve(listener, tls, Protocols::Http2, timeouts, admission, per_peer, shutdown).await;
     health_task.abort();
     result.map_err(Into::into)
 }

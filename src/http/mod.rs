@@ -107,6 +107,21 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
+/// The probe listener's routes (`--probe-http`): the open probes and `/metrics` (which
+/// needs a token as on the API port).
+pub fn probe_router(state: AppState) -> Router {
+    let metrics = Router::new()
+        .route("/metrics", handler("GET", "/metrics"))
+        .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
+    routes(OPEN_ROUTES)
+        .merge(metrics)
+        .fallback(|| async {
+            ApiError::from(Error::NotFound("no such route (the probe port serves /livez, /readyz and /metrics)".into()))
+        })
+        .layer(middleware::from_fn(json_errors))
+        .with_state(state)
+}
+
 /// Gives every error answer the JSON shape of [`ApiError`], including those the router
 /// and axum's extractors write as plain text (405, a path that is not UTF-8, a bad query):
 /// their status and headers (`Allow`) are kept, their text becomes the message.

@@ -282,10 +282,17 @@ pub struct Process {
 
 /// Starts the daemon binary at log level `info` (a `--log` in `extra` wins).
 pub fn spawn_daemon(data_dir: &Path, extra: &[&str]) -> Process {
+    spawn_daemon_with(data_dir, extra, |_| {})
+}
+
+/// [`spawn_daemon`] with the command adjusted by `adjust` before it starts.
+pub fn spawn_daemon_with(data_dir: &Path, extra: &[&str], adjust: impl FnOnce(&mut std::process::Command)) -> Process {
     use std::io::BufRead;
     let mut argv = args(data_dir, &["--log-format", "json", "--log", "info"]);
     argv.extend(extra.iter().map(|s| s.to_string()));
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_mcdenoise"))
+    let mut command = std::process::Command::new(env!("CARGO_BIN_EXE_mcdenoise"));
+    adjust(&mut command);
+    let mut child = command
         .args(&argv)
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
@@ -297,12 +304,14 @@ pub fn spawn_daemon(data_dir: &Path, extra: &[&str]) -> Process {
     let kept = logs.clone();
     let reader = std::thread::spawn(move || {
         for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            // Kept before the addresses are passed on: the listening line is in `logs` by
+            // the time `spawn_daemon` returns.
+            kept.lock().unwrap().push(line.clone());
             if let Ok(v) = serde_json::from_str::<Value>(&line) {
                 if v["message"] == "listening" {
                     let _ = tx.send((v["http"].as_str().unwrap().to_string(), v["grpc"].as_str().unwrap().to_string()));
                 }
             }
-            kept.lock().unwrap().push(line);
         }
     });
     let (http, grpc) = rx.recv_timeout(Duration::from_secs(30)).expect("the daemon logs its addresses");
