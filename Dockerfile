@@ -51,11 +51,13 @@ COPY --from=build /out/bin/mcdenoise /usr/local/bin/mcdenoise
 COPY scripts/healthcheck /usr/local/bin/mcdenoise-healthcheck
 COPY models/full /opt/mcdenoise/models/full
 COPY models/nocov /opt/mcdenoise/models/nocov
+COPY models/lin2020 /opt/mcdenoise/models/lin2020
 COPY models/MODEL_CARD.md /opt/mcdenoise/models/
 
 # Defaults; every option of `mcdenoise serve` is an environment variable (docs/api.md).
 ENV MCDENOISE_HTTP=0.0.0.0:8080 \
     MCDENOISE_GRPC=0.0.0.0:50051 \
+    MCDENOISE_PROBE_HTTP=0.0.0.0:8081 \
     MCDENOISE_DATA_DIR=/var/lib/mcdenoise \
     MCDENOISE_MODELS=/opt/mcdenoise/models \
     ORT_DYLIB_PATH=/opt/mcdenoise/lib/libonnxruntime.so.1.31.1 \
@@ -66,7 +68,7 @@ ENV MCDENOISE_HTTP=0.0.0.0:8080 \
 USER 10001:10001
 WORKDIR /var/lib/mcdenoise
 VOLUME ["/var/lib/mcdenoise"]
-EXPOSE 8080 50051
+EXPOSE 8080 8081 50051
 STOPSIGNAL SIGTERM
 HEALTHCHECK --interval=15s --timeout=5s --start-period=10s --retries=3 \
   CMD ["mcdenoise-healthcheck"]

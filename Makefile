@@ -84,7 +84,7 @@ TEST_DATA ?= data-test
 # The data generator's test sets (--test-scenes) carry split `test`; older sets `val`.
 TEST_SPLIT ?= test
 TEST_OUT ?= test-families
-EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --oidn --crops 4 --outliers 20
+EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --method lin2020=$(CURDIR)/models:lin2020 --oidn --crops 4 --outliers 20
 eval: build
 	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
 	  --out $(CURDIR)/docs/results/val

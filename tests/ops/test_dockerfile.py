@@ -111,7 +111,7 @@ def test_every_copied_path_and_script_exists_in_the_build_context():
         p = ROOT / src.rstrip("/")
         assert p.exists(), f"{src} named in the Dockerfile does not exist"
         assert dockerignore_includes(src.rstrip("/")), f"{src} is excluded by .dockerignore"
-    for model in ["models/full/diffuse.onnx", "models/nocov/specular.onnx", "src/main.rs", "proto/mcdenoise/v1/denoise.proto"]:
+    for model in ["models/full/model.onnx", "models/nocov/model.onnx", "models/lin2020/diffuse.onnx", "src/main.rs", "proto/mcdenoise/v1/denoise.proto"]:
         assert dockerignore_includes(model), model
     for heavy in ["target/release/mcdenoise", "runs/x", "data/x.exr", ".git/HEAD"]:
         assert not dockerignore_includes(heavy), heavy
@@ -128,7 +128,8 @@ def test_image_defaults_are_options_of_the_daemon():
     assert any(i == "HEALTHCHECK" and "mcdenoise-healthcheck" in r for i, r in ins)
     assert ("CMD", '["serve"]') in ins and ("ENTRYPOINT", '["mcdenoise"]') in ins
     ports = {r for i, r in ins if i == "EXPOSE"}
-    assert ports == {f"{env['MCDENOISE_HTTP'].rsplit(':', 1)[1]} {env['MCDENOISE_GRPC'].rsplit(':', 1)[1]}"}
+    port = {k: env[k].rsplit(':', 1)[1] for k in ("MCDENOISE_HTTP", "MCDENOISE_PROBE_HTTP", "MCDENOISE_GRPC")}
+    assert ports == {f"{port['MCDENOISE_HTTP']} {port['MCDENOISE_PROBE_HTTP']} {port['MCDENOISE_GRPC']}"}
 
 
 def test_daemon_runs_on_the_image_defaults(tmp_path):
@@ -144,7 +145,8 @@ def test_daemon_runs_on_the_image_defaults(tmp_path):
     run_env = dict(os.environ)
     for k, v in env.items():
         run_env[k] = str(root / v.lstrip("/")) if v.startswith("/") else v
-    run_env.update(MCDENOISE_HTTP=f"127.0.0.1:{port}", MCDENOISE_GRPC=f"127.0.0.1:{free_port()}")
+    run_env.update(MCDENOISE_HTTP=f"127.0.0.1:{port}", MCDENOISE_GRPC=f"127.0.0.1:{free_port()}",
+                   MCDENOISE_PROBE_HTTP=f"127.0.0.1:{free_port()}")
     run_env.pop("MCDENOISE_AUTH_TOKENS", None)
     proc = subprocess.Popen([str(mcdenoise_bin()), "serve"], env=run_env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, cwd=tmp_path)
@@ -154,6 +156,7 @@ def test_daemon_runs_on_the_image_defaults(tmp_path):
         d.log = open(tmp_path / "unused.log", "wb")
         d.wait_ready()
         assert (root / "var/lib/mcdenoise/jobs.redb").is_file()
+        # The healthcheck asks the probe port (MCDENOISE_PROBE_HTTP).
         hc = subprocess.run(["bash", str(ROOT / "scripts" / "healthcheck")], env=run_env, capture_output=True, text=True)
         assert hc.returncode == 0, hc.stderr
     finally:
