@@ -566,9 +566,8 @@ async fn list(
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<JobList>, ApiError> {
     let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
-    let state = q.state.as_deref().filter(|s| !s.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
-    let priority =
-        q.priority.as_deref().filter(|p| !p.is_empty()).map(str::parse).transpose().map_err(Error::BadRequest)?;
+    let state = q.state.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?;
+    let priority = q.priority.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?;
     let filter = ListFilter {
         state,
         priority,
