@@ -315,9 +315,13 @@ async fn bearer_tokens_guard_everything_but_health() {
     let mut anonymous = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
     let err = anonymous.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await.unwrap_err();
     assert_eq!(err.code(), tonic::Code::Unauthenticated);
+    // Each submit token lists only its own jobs.
+    let mut owner = mcdenoise::client::grpc_connect(&d.grpc, Some("other")).await.unwrap();
+    let jobs = owner.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await.unwrap().into_inner();
+    assert_eq!(jobs.jobs.len(), 1);
     let mut client = mcdenoise::client::grpc_connect(&d.grpc, Some("s3cret")).await.unwrap();
     let jobs = client.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await.unwrap().into_inner();
-    assert_eq!(jobs.jobs.len(), 1);
+    assert_eq!(jobs.jobs.len(), 0);
     let channel =
         tonic::transport::Endpoint::from_shared(format!("http://{}", d.grpc)).unwrap().connect().await.unwrap();
     let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
