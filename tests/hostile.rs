@@ -143,14 +143,7 @@ async fn a_multipart_upload_holds_its_client_slot_from_its_first_byte() {
          content-length: 100000\r\n\r\n{body}"
     );
     stalled.write_all(head.as_bytes()).await.unwrap();
-    poll("the stalled upload in progress", Duration::from_secs(10), || async {
-        let (_, metrics) = get_json(&http, "/metrics").await.unwrap();
-        match metric(metrics.as_str().unwrap(), "mcdenoise_uploads_in_progress") {
-            1.0 => Ok(()),
-            n => Err(n),
-        }
-    })
-    .await;
+    wait_metric(&http, "mcdenoise_uploads_in_progress", 1.0).await;
 
     // The same client (authentication is off: its address) gets 429 for a second upload.
     let (content_type, form) = multipart("{}", &[("frame", &frame(16, 16))]);
@@ -192,6 +185,18 @@ async fn wait_closed(stream: &mut TcpStream, limit: Duration) -> Duration {
             Ok(Ok(_)) => {}
         }
     }
+}
+
+/// Polls `/metrics` (through `http`) until `sample` reads `want`.
+async fn wait_metric(http: &HttpClient, sample: &str, want: f64) {
+    poll(&format!("{sample} at {want}"), Duration::from_secs(10), || async {
+        let (_, metrics) = get_json(http, "/metrics").await.unwrap();
+        match metric(metrics.as_str().unwrap(), sample) {
+            v if v == want => Ok(()),
+            v => Err(v),
+        }
+    })
+    .await
 }
 
 /// The value of a sample in the Prometheus text.
@@ -499,35 +504,20 @@ async fn connection_caps_close_floods_and_the_probe_port_keeps_answering() {
             socket.connect(api).await.unwrap()
         }
     };
-    let open_api = || async {
-        let (_, m) = get_json(&probe, "/metrics").await.unwrap();
-        metric(m.as_str().unwrap(), "mcdenoise_connections{listener=\"api\"}")
-    };
+    let open_api = "mcdenoise_connections{listener=\"api\"}";
 
     // Four idle connections from 127.0.0.1 fill its share: a fifth is closed at once.
     let mut held = Vec::new();
     for _ in 0..4 {
         held.push(from("127.0.0.1").await);
     }
-    poll("4 connections open", Duration::from_secs(10), || async {
-        match open_api().await {
-            4.0 => Ok(()),
-            n => Err(n),
-        }
-    })
-    .await;
+    wait_metric(&probe, open_api, 4.0).await;
     let mut fifth = from("127.0.0.1").await;
     wait_closed(&mut fifth, Duration::from_secs(5)).await;
     // Another address still gets in, up to the total of 6; the seventh is closed.
     held.push(from("127.0.0.2").await);
     held.push(from("127.0.0.2").await);
-    poll("6 connections open", Duration::from_secs(10), || async {
-        match open_api().await {
-            6.0 => Ok(()),
-            n => Err(n),
-        }
-    })
-    .await;
+    wait_metric(&probe, open_api, 6.0).await;
     let mut seventh = from("127.0.0.2").await;
     wait_closed(&mut seventh, Duration::from_secs(5)).await;
 
