@@ -268,6 +268,8 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
             &cap,
             "--auth-token",
             &tokens,
+            "--operator-token",
+            "farm-ops",
             "--models",
             &models,
             "--tile",
@@ -279,6 +281,8 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
         ],
     );
     let clients: Vec<HttpClient> = nodes.iter().map(|t| HttpClient::new(&p.http, Some(t))).collect();
+    // The farm manager: an operator token sees every node's jobs.
+    let ops = HttpClient::new(&p.http, Some("farm-ops"));
     wait_ready(&clients[0]).await;
     let rss_idle = peak_rss_mb(p.child.id());
     let exr = frame(side, side);
@@ -291,7 +295,7 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
     let probe = probe["id"].as_str().unwrap().to_string();
     let stop = tokio_util::sync::CancellationToken::new();
     let poller = tokio::spawn({
-        let (http, stop, path) = (clients[1].clone(), stop.clone(), format!("/v1/jobs/{probe}"));
+        let (http, stop, path) = (ops.clone(), stop.clone(), format!("/v1/jobs/{probe}"));
         async move {
             let mut ms = Vec::new();
             while !stop.is_cancelled() {
@@ -342,7 +346,7 @@ async fn a_burst_of_ten_times_the_queue_is_shed_at_once_and_the_daemon_recovers(
     // Everything accepted completes.
     let t = Instant::now();
     for id in accepted.iter().chain([&probe]) {
-        wait_succeeded(&clients[2], id, Duration::from_secs(120).saturating_sub(t.elapsed())).await;
+        wait_succeeded(&ops, id, Duration::from_secs(120).saturating_sub(t.elapsed())).await;
     }
     let drained_s = t.elapsed().as_secs_f64();
     stop.cancel();
