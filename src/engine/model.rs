@@ -70,6 +70,10 @@ fn model_error(path: &Path, reason: impl Into<String>) -> EngineError {
 /// carry the builder and are not `Send`.
 pub fn build_session(env: &ort::environment::Environment, path: &Path, threads: usize) -> ort::Result<Session> {
     Session::builder(env)?
+        // Memory patterns are planned per input shape and kept: with tiles of several shapes
+        // (edge tiles) they held 0.9 GB more at 4K for no speed (docs/results/speed-work.md).
+        // The CPU arena stays: without it inference was 1.3-1.6x slower.
+        .with_memory_pattern(false)?
         .with_optimization_level(GraphOptimizationLevel::All)?
         .with_intra_threads(threads)?
         .with_inter_threads(1)?
