@@ -73,16 +73,21 @@ impl Caller {
         Caller { id, scope: Scope::Operator, metrics: true }
     }
 
-    /// Whether it may see and change a job submitted by `owner` (records written before
-    /// jobs had owners have none and are open to every caller).
+    /// Whether it may see and change a job submitted by `owner` (see [`owns`]).
     pub fn may_access(&self, owner: Option<&str>) -> bool {
-        self.scope == Scope::Operator || owner.is_none_or(|o| o == self.id.as_str())
+        self.scope == Scope::Operator || owns(self.id.as_str(), owner)
     }
 
     /// The owner a listing is restricted to: none for operators.
     pub fn owner_filter(&self) -> Option<String> {
         (self.scope != Scope::Operator).then(|| self.id.as_str().to_string())
     }
+}
+
+/// Whether `client` owns a job submitted by `owner` (records written before jobs had owners
+/// have none and belong to every client).
+pub fn owns(client: &str, owner: Option<&str>) -> bool {
+    owner.is_none_or(|o| o == client)
 }
 
 /// The accepted bearer tokens (as digests, with their scopes); empty disables

@@ -59,6 +59,10 @@ type BoxError = Box<dyn std::error::Error + Send + Sync>;
 /// Descriptors kept free of connections for the job store, the models and the logs.
 pub const RESERVED_FILES: u64 = 256;
 
+/// The probe listener's own caps: a few kubelets and scrapers, never a farm.
+pub const PROBE_CONNECTIONS: usize = 64;
+pub const PROBE_CONNECTIONS_PER_PEER: usize = 16;
+
 /// Raises the soft limit on open files to the hard one; returns the soft limit in force
 /// afterwards (`None` when it is unlimited or cannot be read).
 pub fn raise_file_limit() -> Option<u64> {

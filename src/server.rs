@@ -95,7 +95,12 @@ impl Server {
             telemetry.clone(),
         );
         // The probe port has its own small caps: a flood of the API ports cannot fill them.
-        let probe_admission = crate::conn::Admission::new("probe", 64, 16, telemetry.clone());
+        let probe_admission = crate::conn::Admission::new(
+            "probe",
+            crate::conn::PROBE_CONNECTIONS,
+            crate::conn::PROBE_CONNECTIONS_PER_PEER,
+            telemetry.clone(),
+        );
         // Before the job store and the workers: a bad certificate stops the start cleanly.
         let tls = crate::tls::Tls::load(args.tls_cert.as_deref(), args.tls_key.as_deref())?;
         let settings = Settings::from_args(&args);

@@ -96,13 +96,9 @@ fn routes(table: &[(&str, &str)]) -> Router<AppState> {
 /// The whole HTTP API. Serve it through [`per_peer`]: without authentication, clients are
 /// told apart by their address.
 pub fn router(state: AppState) -> Router {
-    let protected = routes(PROTECTED_ROUTES).route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
-    routes(OPEN_ROUTES)
-        .merge(protected)
-        .fallback(|| async { ApiError::from(Error::NotFound("no such route".into())) })
+    open_and_protected(&state, PROTECTED_ROUTES, "no such route")
         // Uploads are streamed to disk and limited by `--max-body-bytes` as they arrive.
         .layer(DefaultBodyLimit::disable())
-        .layer(middleware::from_fn(json_errors))
         .layer(middleware::from_fn_with_state(state.clone(), observe))
         .with_state(state)
 }
@@ -110,16 +106,18 @@ pub fn router(state: AppState) -> Router {
 /// The probe listener's routes (`--probe-http`): the open probes and `/metrics` (which
 /// needs a token as on the API port).
 pub fn probe_router(state: AppState) -> Router {
-    let metrics = Router::new()
-        .route("/metrics", handler("GET", "/metrics"))
-        .route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
+    let not_found = "no such route (the probe port serves /livez, /readyz and /metrics)";
+    open_and_protected(&state, &[("GET", "/metrics")], not_found).with_state(state)
+}
+
+/// [`OPEN_ROUTES`] and the `protected` ones behind the token check, JSON errors for every
+/// answer, `not_found` for any other path.
+fn open_and_protected(state: &AppState, protected: &[(&str, &str)], not_found: &'static str) -> Router<AppState> {
+    let protected = routes(protected).route_layer(middleware::from_fn_with_state(state.clone(), authenticate));
     routes(OPEN_ROUTES)
-        .merge(metrics)
-        .fallback(|| async {
-            ApiError::from(Error::NotFound("no such route (the probe port serves /livez, /readyz and /metrics)".into()))
-        })
+        .merge(protected)
+        .fallback(move || async move { ApiError::from(Error::NotFound(not_found.into())) })
         .layer(middleware::from_fn(json_errors))
-        .with_state(state)
 }
 
 /// Gives every error answer the JSON shape of [`ApiError`], including those the router

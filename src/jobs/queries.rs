@@ -59,7 +59,7 @@ impl JobService {
             .filter(|e| {
                 let r = &e.record;
                 after.is_none_or(|a| r.seq > a)
-                    && filter.owner.as_deref().is_none_or(|o| r.client.as_deref().is_none_or(|c| c == o))
+                    && filter.owner.as_deref().is_none_or(|o| crate::auth::owns(o, r.client.as_deref()))
                     && filter.state.is_none_or(|s| r.state == s)
                     && filter.priority.is_none_or(|p| r.options.priority == p)
                     && filter.label.as_deref().is_none_or(|l| r.options.label.as_deref() == Some(l))
