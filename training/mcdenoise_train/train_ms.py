@@ -295,6 +295,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--resume", action="store_true")
+    p.add_argument("--init", default=None,
+                   help="start from this msnet checkpoint's weights (its shape; a fresh optimizer and schedule): "
+                        "fine-tuning, e.g. with other loss weights")
     p.add_argument("--arch", choices=("msnet", "lin2020"), default="msnet")
     p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
     p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
@@ -334,6 +337,15 @@ def main(argv=None) -> int:
     if a.arch == "lin2020":
         net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
         a.cov_dropout = 0.0  # the paper's network always has covariance
+    elif a.init:
+        from .checkpoint import load_msnet
+
+        net = load_msnet(a.init)[0].train()
+        for k, v in net.config.items():  # the run's config shows the shape it trained
+            if k in ("enc", "dec"):
+                v = ",".join(map(str, v))
+            if k != "arch" and k != "in_features":
+                setattr(a, k, v)
     else:
         net = from_arguments(a, len(FEATURES_FULL))
     net = net.to(dev).to(memory_format=torch.channels_last)

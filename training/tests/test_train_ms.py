@@ -116,6 +116,14 @@ def test_training_steps_resume_and_export(tmp_path):
     for variant in ("full", "nocov"):
         meta = read_metadata_v2(models / variant / "model.onnx")
         assert meta["mcdenoise.contract"] == "2" and meta["mcdenoise.variant"] == variant
+    # Fine-tuning starts from the best weights, keeps their shape whatever the options say,
+    # and begins a fresh schedule at step 0.
+    tuned = tmp_path / "tuned"
+    assert train_ms.main(["--data", str(root), "--out", str(tuned), "--steps", "2", *small, "--enc", "9,9,9,9",
+                          "--init", str(out / "best.pt"), "--ssim", "0.5"]) == 0
+    assert [json.loads(l)["step"] for l in open(tuned / "val.jsonl")] == [2]
+    cfg = json.loads((tuned / "config.json").read_text())
+    assert cfg["enc"] == "6,6,8,8" and cfg["ssim"] == 0.5
 
 
 def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
