@@ -455,3 +455,88 @@ async fn fireflies_are_counted_per_job_and_on_metrics() {
     }
     d.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_token_on_a_large_upload_is_answered_401_counted_and_logged() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start_with_token(dir.path(), &["--auth-token", "tok", "--operator-token", "ops"], Some("wrong")).await;
+    d.ready().await;
+    // 8 MiB the daemon must not keep: the client still reads the 401, not a reset.
+    let big = vec![0u8; 8 << 20];
+    for _ in 0..3 {
+        let len = big.len().to_string();
+        let headers = [("content-type", "image/x-exr"), ("content-length", len.as_str())];
+        let (status, err) = d.http.json(Method::POST, "/v1/jobs", &headers, body_bytes(big.clone())).await.unwrap();
+        assert_eq!(status, StatusCode::UNAUTHORIZED, "{err}");
+        assert_eq!(err["error"]["code"], "unauthenticated");
+    }
+    // gRPC: a refused SubmitJob is counted too; other refused calls are not submissions.
+    let mut grpc = mcdenoise::client::grpc_connect(&d.grpc, Some("wrong")).await.unwrap();
+    let upload = futures_util::stream::iter([mcdenoise::grpc::pb::SubmitJobRequest::default()]);
+    assert_eq!(grpc.submit_job(upload).await.unwrap_err().code(), tonic::Code::Unauthenticated);
+    let err = grpc.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await.unwrap_err();
+    assert_eq!(err.code(), tonic::Code::Unauthenticated);
+    assert_eq!(d.http.get("/v1/jobs").await.unwrap().status(), StatusCode::UNAUTHORIZED);
+    let ops = mcdenoise::client::HttpClient::new(&d.base, Some("ops"));
+    let (status, text) = ops.json(Method::GET, "/metrics", &[], body_bytes(vec![])).await.unwrap();
+    assert_eq!(status, StatusCode::OK);
+    let text = text.as_str().unwrap();
+    assert!(text.contains("mcdenoise_jobs_rejected_total{reason=\"unauthenticated\"} 4"), "{text}");
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn events_have_ids_resume_after_last_event_id_and_end_with_deleted() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--tile", "16", "--debug-tile-delay", "150ms"]).await;
+    d.ready().await;
+    let running = d.submit_ok(&frame(64, 64), "").await;
+    let queued = d.submit_ok(&frame(32, 32), "").await;
+    // Read the running job's events up to tile 2, then reconnect from there.
+    let resp = d.http.get(&format!("/v1/jobs/{running}/events")).await.unwrap();
+    let mut events = mcdenoise::client::SseReader::new(resp);
+    let mut seen = Vec::new();
+    while let Some(ev) = events.next().await.unwrap() {
+        let id = ev.id.clone().expect("every event has an id");
+        seen.push((ev.event.clone(), id.clone()));
+        if id == "1.2" {
+            break;
+        }
+    }
+    assert!(seen.iter().any(|(e, id)| e == "started" && id == "1.started"), "{seen:?}");
+    drop(events);
+    let resp = d
+        .http
+        .send(Method::GET, &format!("/v1/jobs/{running}/events"), &[("last-event-id", "1.2")], body_bytes(vec![]))
+        .await
+        .unwrap();
+    let mut events = mcdenoise::client::SseReader::new(resp);
+    let first = events.next().await.unwrap().expect("an event");
+    assert_eq!(first.event, "progress", "{first:?}");
+    assert!(first.data["tiles_done"].as_u64().unwrap() > 2, "{first:?}");
+    assert_eq!(first.id.as_deref(), Some(format!("1.{}", first.data["tiles_done"]).as_str()));
+    // A job deleted while watched ends its stream with `deleted`.
+    let watcher = {
+        let http = d.http.clone();
+        let path = format!("/v1/jobs/{queued}/events");
+        tokio::spawn(async move {
+            let mut out = Vec::new();
+            let resp = http.get(&path).await.unwrap();
+            mcdenoise::client::read_sse(resp, |e| {
+                out.push(e);
+                true
+            })
+            .await
+            .unwrap();
+            out
+        })
+    };
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let resp = d.http.send(Method::DELETE, &format!("/v1/jobs/{queued}"), &[], body_bytes(vec![])).await.unwrap();
+    assert!(resp.status().is_success(), "{}", resp.status());
+    let got = tokio::time::timeout(Duration::from_secs(10), watcher).await.expect("the stream ends").unwrap();
+    let names: Vec<&str> = got.iter().map(|e| e.event.as_str()).collect();
+    assert_eq!(names, ["queued", "deleted"], "{got:?}");
+    assert_eq!(got[1].data["id"], queued.as_str());
+    d.stop().await;
+}

@@ -213,3 +213,55 @@ async fn the_submit_command_waits_and_writes_the_result_over_http_and_grpc() {
     assert!(String::from_utf8_lossy(&output.stderr).contains("401"), "{}", String::from_utf8_lossy(&output.stderr));
     d.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_submit_command_denoises_a_frame_range_retrying_a_full_queue() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--queue-capacity", "1", "--tile", "16", "--debug-tile-delay", "20ms"]).await;
+    d.ready().await;
+    for n in 1..=4 {
+        write(dir.path(), &format!("shot.{n:04}.exr"), &frame(40, 24));
+    }
+    // Frames 1-4 at once against a queue of one: refused with 429 and retried; frame 5 is missing.
+    let pattern = dir.path().join("shot.####.exr");
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_mcdenoise"));
+    cmd.args(["submit", pattern.to_str().unwrap(), "--server", &d.base, "--frames", "1-5", "--concurrency", "4"]);
+    let output = run(cmd).await;
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(stderr.contains("1 of 5 frames failed: 5"), "{stderr}");
+    assert!(stderr.contains("429") && stderr.contains("retrying in"), "{stderr}");
+    let rows: Vec<Value> =
+        String::from_utf8_lossy(&output.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(rows.len(), 5);
+    for n in 1..=4u64 {
+        let row = rows.iter().find(|r| r["frame"] == n).unwrap();
+        assert_eq!(row["job"]["state"], "succeeded", "{row}");
+        let out = dir.path().join(format!("shot.denoised.{n:04}.exr"));
+        assert_eq!(row["output"], out.to_str().unwrap());
+        assert!(out.is_file(), "{}", out.display());
+    }
+    assert!(rows.iter().find(|r| r["frame"] == 5).unwrap()["error"].as_str().unwrap().contains("shot.0005.exr"));
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_submit_command_reports_a_wrong_token_on_a_large_upload_as_401_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &["--auth-token", "tok"]).await;
+    d.ready().await;
+    // Larger than the daemon reads from a refused client: the connection is closed on it.
+    let big = write(dir.path(), "big.exr", &vec![0u8; 80 << 20]);
+    for server in [d.base.clone(), format!("grpc://{}", d.grpc)] {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mcdenoise"));
+        cmd.args(["submit", big.to_str().unwrap(), "--server", &server, "--token", "wrong"]);
+        let t = std::time::Instant::now();
+        let output = run(cmd).await;
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{stderr}");
+        assert!(stderr.contains("401") || stderr.contains("Unauthenticated"), "{server}: {stderr}");
+        assert!(stderr.contains("invalid bearer token") && !stderr.contains("retrying"), "{server}: {stderr}");
+        assert!(t.elapsed() < Duration::from_secs(30), "{server}: took {:?}", t.elapsed());
+    }
+    d.stop().await;
+}

@@ -115,6 +115,7 @@ pub fn event_pb(job_id: &str, ev: &JobEvent) -> pb::JobEvent {
             out.job = Some(pb::Job::from(&**s));
             pb::EventType::Cancelled
         }
+        JobEvent::Deleted => pb::EventType::Deleted,
     };
     out.r#type = kind as i32;
     out
@@ -402,20 +403,34 @@ fn caller_of<T>(request: &Request<T>) -> Caller {
 
 /// Checks `authorization: Bearer <token>` metadata and records who is calling (a
 /// [`Caller`] extension).
+/// A refused caller is logged and, on `SubmitJob`, counted as a rejected job.
 #[derive(Clone)]
 pub struct Auth {
     tokens: Arc<Tokens>,
+    service: JobService,
 }
+
+/// The path of a gRPC request (`/package.Service/Method`), an extension set before the
+/// interceptors run (they see no URI).
+#[derive(Clone)]
+struct MethodPath(String);
+
+const SUBMIT_PATH: &str = "/mcdenoise.v1.Denoiser/SubmitJob";
 
 impl tonic::service::Interceptor for Auth {
     fn call(&mut self, mut request: Request<()>) -> Result<Request<()>, Status> {
         let authorization = request.metadata().get("authorization").and_then(|v| v.to_str().ok());
-        let caller = self
-            .tokens
-            .authenticate(authorization, request.remote_addr(), "metadata authorization")
-            .map_err(|e| status(&e))?;
-        request.extensions_mut().insert(caller);
-        Ok(request)
+        match self.tokens.authenticate(authorization, request.remote_addr(), "metadata authorization") {
+            Ok(caller) => {
+                request.extensions_mut().insert(caller);
+                Ok(request)
+            }
+            Err(e) => {
+                let path = request.extensions().get::<MethodPath>().map_or("", |p| p.0.as_str());
+                self.service.note_refused_caller(&e, "grpc", path, request.remote_addr(), path == SUBMIT_PATH);
+                Err(status(&e))
+            }
+        }
     }
 }
 
@@ -429,7 +444,7 @@ pub async fn serve(
     admission: Arc<crate::conn::Admission>,
     shutdown: CancellationToken,
 ) -> anyhow::Result<()> {
-    let auth = Auth { tokens };
+    let auth = Auth { tokens, service: service.clone() };
     let api = DenoiserServer::new(Api::new(service.clone(), shutdown.clone()))
         .max_decoding_message_size(MAX_MESSAGE_BYTES)
         .max_encoding_message_size(MAX_MESSAGE_BYTES);
@@ -469,6 +484,14 @@ pub async fn serve(
         .add_service(InterceptedService::new(reflection_v1alpha, auth.clone()))
         .add_service(InterceptedService::new(api, auth))
         .prepare();
+    let routes = tower::ServiceExt::<axum::http::Request<hyper::body::Incoming>>::map_request(
+        routes,
+        |mut request: axum::http::Request<hyper::body::Incoming>| {
+            let path = MethodPath(request.uri().path().to_owned());
+            request.extensions_mut().insert(path);
+            request
+        },
+    );
     let routes = tower::ServiceExt::<axum::http::Request<hyper::body::Incoming>>::map_response(
         routes,
         decode_errors_are_invalid_argument as fn(axum::http::Response<tonic::body::Body>) -> _,

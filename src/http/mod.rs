@@ -185,7 +185,10 @@ pub fn per_peer(
     move |peer| crate::conn::WithExtension::new(router.clone(), ConnectInfo(Peer(peer)))
 }
 
-/// Checks the bearer token and records who is calling (a [`Caller`] extension).
+/// Checks the bearer token and records who is calling (a [`Caller`] extension). A refused
+/// request is logged and, for a submission, counted as a rejection; the body it was
+/// sending is read and discarded (as far as [`DrainOnDrop`] goes), so that a client in the
+/// middle of an upload reads the 401 instead of a reset connection.
 async fn authenticate(State(app): State<AppState>, mut request: Request, next: Next) -> Response {
     let peer = request.extensions().get::<ConnectInfo<Peer>>().map(|c| c.0 .0);
     let authorization = request.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok());
@@ -194,7 +197,13 @@ async fn authenticate(State(app): State<AppState>, mut request: Request, next: N
             request.extensions_mut().insert(caller);
             next.run(request).await
         }
-        Err(e) => ApiError::from(e).into_response(),
+        Err(e) => {
+            let route = request.extensions().get::<MatchedPath>().map_or("unmatched", |p| p.as_str()).to_owned();
+            let submission = request.method() == axum::http::Method::POST && route == "/v1/jobs";
+            app.service.note_refused_caller(&e, "http", &route, peer, submission);
+            drop(DrainOnDrop(Some(request.into_body())));
+            ApiError::from(e).into_response()
+        }
     }
 }
 
@@ -629,18 +638,50 @@ pub fn event_json(job_id: &str, ev: &JobEvent) -> Value {
             json!({ "id": job_id, "tiles_done": p.tiles_done, "tiles_total": p.tiles_total })
         }
         JobEvent::Succeeded(s) | JobEvent::Failed(s) | JobEvent::Cancelled(s) => json!(JobView::from(&**s)),
+        JobEvent::Deleted => json!({ "id": job_id }),
     }
 }
 
-/// `GET /v1/jobs/{id}/events`: Server-Sent Events, ending after the terminal event.
+/// The `id:` of an event: where it stands in the job's life, so that a client that
+/// reconnects with `Last-Event-ID` is not sent again what it has seen (`queued`;
+/// `<attempt>.started`, `<attempt>.<tiles done>`; the terminal event's name).
+fn event_id(ev: &JobEvent, attempt: u32) -> String {
+    match ev {
+        JobEvent::Queued { .. } => "queued".into(),
+        JobEvent::Started { attempt } => format!("{attempt}.started"),
+        JobEvent::Progress(p) => format!("{attempt}.{}", p.tiles_done),
+        terminal => terminal.name().into(),
+    }
+}
+
+/// `GET /v1/jobs/{id}/events`: Server-Sent Events with ids, ending after the terminal
+/// event. With `Last-Event-ID` (a reconnection), the events of the job's current state that
+/// the client saw already are not sent again.
 async fn events(
     State(app): State<AppState>,
     Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
+    headers: HeaderMap,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let seen = headers.get("last-event-id").and_then(|v| v.to_str().ok()).map(str::to_owned);
     let stream = app.service.events(&id, &caller)?;
+    let mut attempt = 0;
+    let mut resuming = seen.is_some();
     let stream = stream
-        .map(move |ev| Ok(Event::default().event(ev.name()).data(event_json(&id, &ev).to_string())))
+        .filter_map(move |ev| {
+            if let JobEvent::Started { attempt: a } = ev {
+                attempt = a;
+            }
+            let event_id = event_id(&ev, attempt);
+            // The current state comes first; skip what the client has, up to the first news.
+            let known = resuming
+                && seen.as_deref().is_some_and(|s| {
+                    s == event_id || (matches!(ev, JobEvent::Started { .. }) && s.starts_with(&format!("{attempt}.")))
+                });
+            resuming &= known;
+            let event = Event::default().event(ev.name()).id(event_id).data(event_json(&id, &ev).to_string());
+            std::future::ready((!known).then_some(Ok(event)))
+        })
         .take_until(app.shutdown.clone().cancelled_owned());
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }

@@ -188,6 +188,23 @@ impl JobService {
         Ok(())
     }
 
+    /// Logs a caller refused by the token check (`e`: which check, never the token) on
+    /// `transport`'s `route`, and counts it as a rejected job when it was a `submission`.
+    pub fn note_refused_caller(
+        &self,
+        e: &Error,
+        transport: &str,
+        route: &str,
+        peer: Option<std::net::SocketAddr>,
+        submission: bool,
+    ) {
+        let peer = peer.map(|p| p.to_string()).unwrap_or_default();
+        tracing::warn!(transport, route, peer, reason = e.code(), "request refused: {e}");
+        if submission {
+            self.note_rejection(e);
+        }
+    }
+
     /// Counts a refused submission in the metrics.
     pub fn note_rejection(&self, e: &Error) {
         let reason = match e {

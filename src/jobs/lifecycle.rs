@@ -317,7 +317,11 @@ impl JobService {
         }
         drop(st);
         drop(journal);
-        // Dropping `entry` closes its event channel: watchers' streams end.
+        // Watchers of an unfinished job learn why their stream ends; dropping `entry`
+        // closes its event channel.
+        if !entry.record.state.is_terminal() {
+            let _ = entry.events.send(JobEvent::Deleted);
+        }
         drop(entry);
         self.inner.store.remove_files(id);
         tracing::info!(job_id = id, "deleted");

@@ -360,6 +360,8 @@ pub enum JobEvent {
     Succeeded(Box<JobStatus>),
     Failed(Box<JobStatus>),
     Cancelled(Box<JobStatus>),
+    /// The job was deleted while watched (it had not finished): nothing follows.
+    Deleted,
 }
 
 impl JobEvent {
@@ -371,11 +373,12 @@ impl JobEvent {
             JobEvent::Succeeded(_) => "succeeded",
             JobEvent::Failed(_) => "failed",
             JobEvent::Cancelled(_) => "cancelled",
+            JobEvent::Deleted => "deleted",
         }
     }
 
     pub fn is_terminal(&self) -> bool {
-        matches!(self, JobEvent::Succeeded(_) | JobEvent::Failed(_) | JobEvent::Cancelled(_))
+        matches!(self, JobEvent::Succeeded(_) | JobEvent::Failed(_) | JobEvent::Cancelled(_) | JobEvent::Deleted)
     }
 
     /// The terminal event of a finished job.
