@@ -5,27 +5,41 @@ export MCDENOISE_HOME
 export ORT_DYLIB_PATH ?= $(MCDENOISE_HOME)/lib/libonnxruntime.so.1.31.1
 export MCDENOISE_BIN := $(CURDIR)/target/release/mcdenoise
 
-.PHONY: setup build test serve train eval bench ablation reliability fuzz
+.PHONY: setup setup-serve setup-train setup-test build test serve train eval bench ablation reliability fuzz
 
-setup:
-	bash scripts/setup
+## Set-up (scripts/setup), in three sets under $(MCDENOISE_HOME); each target below names
+## the one it needs. setup-serve: the ONNX Runtime library only (29 MB, seconds).
+## setup-train: that, the training environment (venv: torch, Mitsuba; about 6 GB) and
+## libllvm19. setup-test (= setup): that and the deploy checks' tools (tests/ops).
+setup: setup-test
 
-build: setup
+setup-serve:
+	bash scripts/setup serve
+
+setup-train:
+	bash scripts/setup train
+
+setup-test:
+	bash scripts/setup test
+
+## The release binary (needs only Rust: the ONNX Runtime library is loaded at run time).
+build:
 	bash scripts/build-release
 
 ## Runs every test: Rust unit and integration tests, then the Python tests (training,
 ## export, data generation, parity with the Rust engine), then tests/ops (Dockerfile,
 ## Kubernetes manifests, dashboard, Python client and farm hook against a real daemon).
 ## The speed benchmark runs once on tiny frames so that it keeps working (figures: make bench).
-test: build
+test: setup-test build
 	cargo test --release --locked
 	cargo bench --locked --bench speed -- --quick --runs 1 --out target/bench/quick.json
 	cd training && $(PY) -m pytest -q tests
 	$(PY) -m pytest -q tests/ops
 
 ## Runs the daemon with the shipped models on its defaults (HTTP :8080, gRPC :50051,
-## data in ./mcdenoise-data); see docs/api.md for the options.
-serve: build
+## data in ./mcdenoise-data); see docs/api.md for the options. Sets up only the ONNX
+## Runtime library (setup-serve): no Python environment.
+serve: setup-serve build
 	$(MCDENOISE_BIN) serve --models models
 
 ## Training data (docs/training-data.md). `make dataset N=100 SIZE=256` renders N procedural
@@ -48,20 +62,20 @@ DATAGEN_ARGS ?=
 
 .PHONY: dataset datagen-timing fixtures
 
-dataset: setup
+dataset: setup-train
 	cd training && $(PY) -m mcdenoise_train.datagen.dataset --out $(abspath $(DATA)) --scenes $(N) \
 	  --test-scenes $(TEST_N) --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --val-fraction $(VAL_FRACTION) \
 	  --workers $(WORKERS) --variant $(MI_VARIANT) --renderer $(RENDERER) $(DATAGEN_ARGS)
 
 ## Times the generator: 6 scenes at SIZE into a scratch directory; summary.json (printed)
 ## gives frames/h and, per scene, the seconds of each launch (tracing, compilation, execution).
-datagen-timing: setup
+datagen-timing: setup-train
 	rm -rf target/datagen-timing
 	cd training && $(PY) -m mcdenoise_train.datagen.dataset --out $(CURDIR)/target/datagen-timing --scenes 6 \
 	  --size $(SIZE) --spp $(SPP) --ref-spp $(REF_SPP) --workers $(WORKERS) --variant $(MI_VARIANT) --no-progress
 
 ## Regenerates the committed test frames in tests/fixtures/frames (see its README).
-fixtures: setup
+fixtures: setup-train
 	cd training && $(PY) -m mcdenoise_train.datagen.fixtures --out $(CURDIR)/tests/fixtures/frames
 
 ## Training (training/mcdenoise_train/train.py). The defaults are the network size that
@@ -72,7 +86,7 @@ RUN ?= runs/$(VARIANT)
 TRAIN_ARGS ?= --width 24 --blocks 4 --predictor-width 48 --predictor-depth 4 --head-kernel 1 \
   --patch 64 --batch 4 --steps 2000 --val-every 250 --lr 1e-4 --log-l1 1
 
-train: build
+train: setup-train build
 	cd training && $(PY) -m mcdenoise_train.train --data $(abspath $(DATA)) --out $(abspath $(RUN)) \
 	  --variant $(VARIANT) $(TRAIN_ARGS) --resume --export $(CURDIR)/models
 
@@ -85,7 +99,7 @@ TEST_DATA ?= data-test
 TEST_SPLIT ?= test
 TEST_OUT ?= test-families
 EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --method lin2020=$(CURDIR)/models:lin2020 --oidn --crops 4 --outliers 20
-eval: build
+eval: setup-train build
 	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
 	  --out $(CURDIR)/docs/results/val
 	if [ -f $(TEST_DATA)/manifest.jsonl ]; then cd training && $(PY) -m mcdenoise_train.evaluate \
@@ -94,21 +108,21 @@ eval: build
 
 ## Speed (docs/results.md): GEMM ceiling, ONNX Runtime alone, the engine's stages, the
 ## daemon with 1, 2 and 8 clients, peak memory at 720p/1080p/4K, OIDN on the same frame.
-bench: build
+bench: setup-train build
 	cargo bench --locked --bench speed -- --models models --out docs/results/speed.json
 	$(PY) benches/oidn_speed.py target/bench/frame-1280x720.exr --out docs/results/oidn.json
 	$(PY) benches/report.py
 
 ## The paper's ablations (models/MODEL_CARD.md): same data, seed and steps for each variant.
 ABLATION_STEPS ?= 600
-ablation: build
+ablation: setup-train build
 	cd training && $(PY) -m mcdenoise_train.ablation --data $(abspath $(DATA)) --test-data $(abspath $(TEST_DATA)) \
 	  --out $(CURDIR)/runs/ablation --steps $(ABLATION_STEPS) --threads 1
 
 ## Reliability (docs/reliability.md): the SIGKILL soak (KILLS restarts), the burst of 10x the
 ## queue and the SIGTERM drain against the binary; figures in docs/results/reliability/.
 KILLS ?= 40
-reliability: build
+reliability: setup-serve build
 	MCDENOISE_SOAK_KILLS=$(KILLS) MCDENOISE_RELIABILITY_OUT=$(CURDIR)/docs/results/reliability \
 	  cargo test --release --locked --test soak -- --nocapture --test-threads 1
 	MCDENOISE_RELIABILITY_OUT=$(CURDIR)/docs/results/reliability \
@@ -121,12 +135,12 @@ reliability: build
 FUZZ_SECONDS ?= 600
 FUZZ_TARGETS ?= exr_frame http_submit grpc_chunks
 FUZZ_FLAGS = -max_len=65536 -rss_limit_mb=2048 -malloc_limit_mb=512 -timeout=20 -print_final_stats=1
-fuzz: setup
+fuzz: setup-serve
 	cd fuzz && for t in $(FUZZ_TARGETS); do mkdir -p corpus/$$t regressions/$$t && \
 	  cargo +nightly fuzz run -s none $$t corpus/$$t -- $(FUZZ_FLAGS) -max_total_time=$(FUZZ_SECONDS) \
 	    -artifact_prefix=regressions/$$t/ || exit 1; done
 
-fuzz-cmin: setup
+fuzz-cmin: setup-serve
 	cd fuzz && for t in $(FUZZ_TARGETS); do cargo +nightly fuzz cmin -s none $$t corpus/$$t -- -max_len=65536 || exit 1; done
 
 ## Production network (contract v2, docs/training.md): trains msnet on DATA in the
@@ -134,6 +148,6 @@ fuzz-cmin: setup
 MS_RUN ?= runs/ms
 MS_ARGS ?= --steps 6000 --batch 8 --patch 64 --val-every 250 --val-frames 24
 .PHONY: train-ms
-train-ms: build
+train-ms: setup-train build
 	cd training && $(PY) -m mcdenoise_train.train_ms --data $(abspath $(DATA)) --out $(abspath $(MS_RUN)) \
 	  --device cpu $(MS_ARGS) --resume --export $(abspath $(MS_RUN))/models
