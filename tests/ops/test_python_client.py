@@ -1,16 +1,19 @@
-"""The Python client (clients/python) beyond one frame: reference uploads, listings across
-pages, event streams, and refused uploads reported as the daemon's answer. All against a
-real daemon (conftest.py)."""
+"""The Python client (clients/python) as a package and its API beyond one frame: reference
+uploads, listings across pages, event streams, and refused uploads reported as the daemon's
+answer. All against a real daemon (conftest.py)."""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import socket
 import struct
 import subprocess
 import sys
 import threading
 import time
+import uuid
 from pathlib import Path
 
 import pytest
@@ -40,6 +43,52 @@ def metric(daemon, prefix: str) -> float:
     status, text = daemon.get("/metrics")
     assert status == 200
     return sum(float(ln.split()[-1]) for ln in text.splitlines() if ln.startswith(prefix))
+
+
+# --- the package -------------------------------------------------------------------------
+
+def test_package_installs_offline_with_its_console_script(daemon, tmp_path):
+    src = tmp_path / "src"
+    shutil.copytree(ROOT / "clients" / "python", src,
+                    ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__", "dist"))
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], check=True, timeout=120)
+    py, env = venv / "bin" / "python", dict(os.environ, PIP_NO_INDEX="1", PIP_DISABLE_PIP_VERSION_CHECK="1")
+    env.pop("PYTHONPATH", None)
+    # --no-build-isolation builds with the setuptools the venv sees: the base interpreter's
+    # (--system-site-packages). One without bdist_wheel (setuptools < 70.1 without `wheel`)
+    # cannot build a wheel; then lend it this interpreter's setuptools.
+    can_build = subprocess.run([str(py), "-c", "import importlib.util as u, sys; sys.exit(not ("
+                                "u.find_spec('wheel') or u.find_spec('setuptools.command.bdist_wheel')))"],
+                               timeout=60).returncode == 0
+    if not can_build:
+        import setuptools
+        env["PYTHONPATH"] = str(Path(setuptools.__file__).parents[1])
+    r = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index", str(src)],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    env.pop("PYTHONPATH", None)
+    script = venv / "bin" / "mcdenoise-client"
+    assert script.is_file()
+    where = subprocess.run([str(py), "-c", "import mcdenoise_client as m; print(m.__file__, m.__version__)"],
+                           capture_output=True, text=True, timeout=60, cwd=tmp_path, env=env)
+    assert where.returncode == 0 and str(venv) in where.stdout, where.stdout + where.stderr
+    assert where.stdout.split()[1] == mc.__version__
+    out = tmp_path / "out.exr"
+    label = f"pkg-{uuid.uuid4().hex[:8]}"
+    r = subprocess.run([str(script), "--server", daemon.url, "--token", TOKEN, "denoise", str(FRAME), "-o", str(out),
+                        "--reference", str(REF), "--label", label],
+                       capture_output=True, text=True, timeout=120, cwd=tmp_path, env=env)
+    assert r.returncode == 0, r.stderr
+    job = json.loads(r.stdout)
+    assert job["state"] == "succeeded" and job["has_reference"] and out.is_file()
+    assert job["metrics"]["output"]["relmse"] < job["metrics"]["input"]["relmse"]
+    r = subprocess.run([str(script), "--server", daemon.url, "--token", TOKEN, "jobs", "--label", label, "--json"],
+                       capture_output=True, text=True, timeout=60, env=env)
+    assert r.returncode == 0, r.stderr
+    assert [json.loads(ln)["id"] for ln in r.stdout.splitlines()] == [job["id"]]
+    # The copied file still works on its own (no package needed).
+    assert cli("--server", daemon.url, "--token", TOKEN, "job", job["id"]).returncode == 0
 
 
 # --- reference uploads ---------------------------------------------------------------------
