@@ -6,7 +6,9 @@
 A `render_write` handler (called after each frame file is written) hands the frame to
 examples/farm/denoise_hook.py on a background thread, so Blender renders the next frame
 meanwhile; `render_complete` waits for the outstanding frames and prints a summary. The
-denoised frame is written next to the rendered one (`0001.exr` -> `0001.denoised.exr`).
+denoised frame is written next to the rendered one, named by the hook's default output
+pattern (`shot_0001.exr` -> `shot_denoised_0001.exr`, `0001.exr` -> `denoised.0001.exr`;
+see denoise_hook.py), and the hook's client follows each job through its events.
 
 The output must be a multilayer OpenEXR that the daemon can read (docs/frame-layout.md):
 either the canonical layout, or Cycles' own passes with the Diffuse Direct/Indirect/Color
