@@ -375,9 +375,23 @@ pub fn apply_config_file(mut cmd: Command, path: &Path) -> anyhow::Result<Comman
             continue;
         }
         let values: Vec<String> = match value {
-            toml::Value::Array(items) => items.iter().map(scalar).collect::<anyhow::Result<_>>()?,
-            other => vec![scalar(&other)?],
-        };
+            toml::Value::Array(items) => items.iter().map(scalar).collect::<anyhow::Result<_>>(),
+            other => scalar(&other).map(|v| vec![v]),
+        }
+        .with_context(|| format!("config file {}, key {key}", path.display()))?;
+        // Each value is checked here, so that an error names the file and the key (clap
+        // would report it as a bad default of the flag).
+        let arg = cmd.get_arguments().find(|a| a.get_id() == id.as_str()).expect("a known argument");
+        let long = arg.get_long().filter(|_| arg.get_action().takes_values());
+        for v in values.iter().filter(|_| long.is_some()) {
+            let flag = format!("--{}", long.unwrap_or_default());
+            let check = Command::new("config").no_binary_name(true).arg(arg.clone().env(None::<&str>).required(false));
+            if let Err(e) = check.try_get_matches_from([flag.as_str(), v.as_str()]) {
+                let why = e.to_string();
+                let why = why.lines().next().unwrap_or("").trim_start_matches("error: ").to_string();
+                bail!("config file {}, key {key}: {why}", path.display());
+            }
+        }
         // clap keeps `&'static str` defaults; a config file is read once per process.
         let leaked: Vec<&'static str> = values.into_iter().map(|v| &*Box::leak(v.into_boxed_str())).collect();
         cmd = cmd.mut_arg(id.as_str(), |a| a.default_values(leaked));
@@ -398,7 +412,7 @@ fn scalar(v: &toml::Value) -> anyhow::Result<String> {
         toml::Value::Integer(i) => i.to_string(),
         toml::Value::Float(f) => f.to_string(),
         toml::Value::Boolean(b) => b.to_string(),
-        other => bail!("unsupported value {other:?} in the config file"),
+        other => bail!("unsupported value `{other:?}` (a string, number or boolean, or an array of them)"),
     })
 }
 
@@ -451,6 +465,22 @@ mod tests {
         // Timeouts a farm can live with: none above a minute.
         for d in [a.tls_handshake_timeout, a.header_timeout, a.idle_timeout, a.keepalive_interval, a.upload_timeout] {
             assert!(!d.is_zero() && d <= Duration::from_secs(60), "{d:?}");
+        }
+    }
+
+    #[test]
+    fn a_bad_config_value_names_the_file_and_the_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("serve.toml");
+        for (text, expect) in [
+            ("queue-capacity = \"abc\"\n", "key queue-capacity: invalid value 'abc' for '--queue-capacity"),
+            ("workers = 1.5\n", "key workers: invalid value '1.5'"),
+            ("tile = { a = 1 }\n", "key tile: unsupported value"),
+        ] {
+            std::fs::write(&path, text).unwrap();
+            let err = format!("{:#}", parse_serve_args(["serve", "--config", path.to_str().unwrap()]).unwrap_err());
+            assert!(err.contains(&format!("config file {}", path.display())) && err.contains(expect), "{err}");
+            assert!(!err.contains("error:"), "{err}");
         }
     }
 

@@ -66,6 +66,11 @@ fn main() -> std::process::ExitCode {
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
+            // clap's own errors are already worded for the terminal (and exit with 2).
+            if let Some(usage) = e.downcast_ref::<clap::Error>() {
+                let _ = usage.print();
+                return std::process::ExitCode::from(2);
+            }
             eprintln!("error: {e:#}");
             std::process::ExitCode::FAILURE
         }

@@ -134,6 +134,37 @@ fn a_missing_onnx_runtime_is_a_clear_error() {
 }
 
 #[test]
+fn a_models_directory_not_found_is_named_as_resolved() {
+    let tmp = tempfile::tempdir().unwrap();
+    let res = bin()
+        .current_dir(tmp.path())
+        .args(["serve", "--models", "nosuch", "--data-dir", "data", "--http", "127.0.0.1:0", "--grpc", "127.0.0.1:0"])
+        .output()
+        .unwrap();
+    assert_eq!(res.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&res.stderr);
+    let resolved = tmp.path().canonicalize().unwrap().join("nosuch");
+    assert!(
+        err.contains(&format!("no such directory ({} from the current directory)", resolved.display()))
+            || err.contains(&format!("no such directory ({} from the current directory)", tmp.path().join("nosuch").display())),
+        "{err}"
+    );
+    assert!(err.contains("models/"), "{err}");
+}
+
+#[test]
+fn a_bad_config_value_is_reported_with_its_file_and_key_once() {
+    let tmp = tempfile::tempdir().unwrap();
+    let config = tmp.path().join("serve.toml");
+    std::fs::write(&config, "queue-capacity = \"abc\"\n").unwrap();
+    let res = bin().args(["serve", "--config", config.to_str().unwrap()]).output().unwrap();
+    assert_ne!(res.status.code(), Some(0));
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(err.contains(&format!("config file {}, key queue-capacity: invalid value 'abc'", config.display())), "{err}");
+    assert_eq!(err.matches("error:").count(), 1, "{err}");
+}
+
+#[test]
 fn every_serve_option_is_documented_in_the_api_reference() {
     use clap::CommandFactory;
     let doc = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/docs/api.md")).unwrap();

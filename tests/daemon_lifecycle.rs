@@ -265,3 +265,14 @@ async fn the_submit_command_reports_a_wrong_token_on_a_large_upload_as_401_at_on
     }
     d.stop().await;
 }
+
+#[test]
+fn a_second_daemon_on_a_data_directory_in_use_exits_with_a_clear_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut first = spawn_daemon(dir.path(), &[]);
+    let second = Command::new(env!("CARGO_BIN_EXE_mcdenoise")).args(args(dir.path(), &[])).output().unwrap();
+    assert_eq!(second.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&second.stderr);
+    assert!(err.contains(&format!("the data directory {} is in use by another mcdenoise daemon", dir.path().display())), "{err}");
+    assert!(first.terminate().success());
+}

@@ -550,10 +550,18 @@ pub fn load_models(
         }
     }
     if models.is_empty() {
+        // A relative path is resolved against the current directory: say which one.
+        let resolved = match std::path::absolute(dir) {
+            Ok(abs) if abs != dir => format!(" ({} from the current directory)", abs.display()),
+            _ => String::new(),
+        };
+        let what = if dir.is_dir() { "no model variants found" } else { "no such directory" };
         return Err(model_error(
             dir,
-            "no model variants found (expected subdirectories such as full/ or nocov/ holding model.onnx, or \
-             diffuse.onnx and specular.onnx)",
+            format!(
+                "{what}{resolved}: expected subdirectories such as full/ or nocov/ holding model.onnx, or \
+                 diffuse.onnx and specular.onnx (the shipped ones are in the repository's models/)"
+            ),
         ));
     }
     Ok(models)
