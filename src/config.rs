@@ -469,6 +469,17 @@ mod tests {
     }
 
     #[test]
+    fn the_example_config_file_is_valid_and_says_the_defaults() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("deploy/mcdenoise.example.toml");
+        let a = parse_serve_args(["serve", "--config", path.to_str().unwrap()]).unwrap();
+        let d = parse_serve_args(["serve"]).unwrap();
+        assert_eq!((a.http, a.grpc, a.queue_capacity, a.result_ttl), (d.http, d.grpc, d.queue_capacity, d.result_ttl));
+        assert_eq!((a.tile, a.tile_v2, a.max_pixels, a.max_body_bytes), (d.tile, d.tile_v2, d.max_pixels, d.max_body_bytes));
+        assert_eq!(a.fireflies.settings(), d.fireflies.settings());
+        assert_eq!(a.workers, Some(1));
+    }
+
+    #[test]
     fn a_bad_config_value_names_the_file_and_the_key() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("serve.toml");
