@@ -58,6 +58,15 @@ pub enum Scope {
     Operator,
 }
 
+impl Scope {
+    pub fn name(self) -> &'static str {
+        match self {
+            Scope::Submit => "submit",
+            Scope::Operator => "operator",
+        }
+    }
+}
+
 /// Who is calling and what it may do: set on every authenticated request.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Caller {

@@ -114,7 +114,12 @@ impl Server {
         let trigger = CancellationToken::new();
         let stop = CancellationToken::new();
         let tokens = Arc::new(crate::auth::Tokens::new(&args.auth_tokens, &args.operator_tokens));
-        let state = crate::http::AppState { service: service.clone(), tokens: tokens.clone(), shutdown: stop.clone() };
+        let state = crate::http::AppState {
+            service: service.clone(),
+            tokens: tokens.clone(),
+            shutdown: stop.clone(),
+            info: Arc::new(crate::http::Info::new(args.summary())),
+        };
         let timeouts = args.timeouts();
         let http_task = tokio::spawn(crate::conn::serve(
             http,

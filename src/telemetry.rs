@@ -2,7 +2,9 @@
 //!
 //! Every metric family is registered, and every bounded label value initialised, when the
 //! daemon starts: a scrape before the first job already shows queue depth 0 per priority,
-//! 0 jobs per outcome and empty stage histograms.
+//! 0 jobs per outcome and empty stage histograms. Beside the `mcdenoise_*` families: the
+//! standard `process_*` metrics (CPU, memory, file descriptors, threads, start time) read
+//! from /proc at each scrape, and `mcdenoise_build_info`.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
@@ -115,7 +117,8 @@ impl Default for Telemetry {
 
 impl Telemetry {
     pub fn new() -> Telemetry {
-        let mut registry = Registry::with_prefix("mcdenoise");
+        let mut root = Registry::default();
+        let registry = root.sub_registry_with_prefix("mcdenoise");
         let t = Telemetry {
             registry: Mutex::new(Registry::default()),
             queue_depth: Family::default(),
@@ -233,6 +236,17 @@ impl Telemetry {
             let _ = t.storage_errors.get_or_create(&labels(&[("kind", k)]));
         }
 
+        let build = Family::<Labels, Gauge>::default();
+        build
+            .get_or_create(&labels(&[
+                ("version", env!("CARGO_PKG_VERSION")),
+                ("onnxruntime", crate::engine::runtime::ORT_VERSION),
+                ("target", std::env::consts::ARCH),
+            ]))
+            .set(1);
+        registry.register("build_info", "The daemon's version and the ONNX Runtime it is built for", build);
+        root.register_collector(Box::new(ProcessCollector::new()));
+
         for p in Priority::ALL {
             t.queue_depth.get_or_create(&labels(&[("priority", p.name())])).set(0);
         }
@@ -256,7 +270,7 @@ impl Telemetry {
                 let _ = t.connections_refused.get_or_create(&labels(&[("listener", l), ("reason", r)]));
             }
         }
-        *t.registry.lock().unwrap() = registry;
+        *t.registry.lock().unwrap() = root;
         t
     }
 
@@ -379,5 +393,72 @@ impl Telemetry {
 
     pub fn fireflies_handled(&self, samples: u64) {
         self.fireflies.inc_by(samples);
+    }
+}
+
+/// The standard `process_*` metrics of this process, read from /proc at each scrape
+/// (Linux; elsewhere only the start time). Written here rather than taken from a crate:
+/// the reading is a few lines, and the crates that do it bring a /proc parser of their own.
+#[derive(Debug)]
+struct ProcessCollector {
+    start_time: f64,
+}
+
+impl ProcessCollector {
+    fn new() -> ProcessCollector {
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+        ProcessCollector { start_time: now.as_secs_f64() }
+    }
+}
+
+/// From /proc/self/stat: CPU seconds (user + system), threads, virtual and resident bytes.
+fn proc_stat() -> Option<(f64, i64, i64, i64)> {
+    let text = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The fields after the command name (which may hold spaces), from field 3 (`state`).
+    let fields: Vec<&str> = text.get(text.rfind(')')? + 1..)?.split_whitespace().collect();
+    let field = |n: usize| fields.get(n - 3)?.parse::<i64>().ok();
+    let ticks = rustix::param::clock_ticks_per_second() as f64;
+    let cpu = (field(14)? + field(15)?) as f64 / ticks;
+    let page = rustix::param::page_size() as i64;
+    Some((cpu, field(20)?, field(23)?, field(24)? * page))
+}
+
+impl prometheus_client::collector::Collector for ProcessCollector {
+    fn encode(&self, mut encoder: prometheus_client::encoding::DescriptorEncoder) -> std::fmt::Result {
+        use prometheus_client::encoding::EncodeMetric;
+        use prometheus_client::metrics::counter::ConstCounter;
+        use prometheus_client::metrics::gauge::ConstGauge;
+        use prometheus_client::registry::Unit;
+
+        fn gauge<T: prometheus_client::encoding::EncodeGaugeValue + Copy>(
+            encoder: &mut prometheus_client::encoding::DescriptorEncoder,
+            name: &str,
+            help: &str,
+            unit: Option<&Unit>,
+            value: T,
+        ) -> std::fmt::Result {
+            let g = ConstGauge::new(value);
+            g.encode(encoder.encode_descriptor(name, help, unit, g.metric_type())?)
+        }
+        gauge(&mut encoder, "process_start_time", "Start time since the Unix epoch", Some(&Unit::Seconds), self.start_time)?;
+        if let Some((cpu, threads, virt, rss)) = proc_stat() {
+            let c = ConstCounter::new(cpu);
+            c.encode(encoder.encode_descriptor(
+                "process_cpu",
+                "User and system CPU time spent",
+                Some(&Unit::Seconds),
+                c.metric_type(),
+            )?)?;
+            gauge(&mut encoder, "process_threads", "OS threads", None, threads)?;
+            gauge(&mut encoder, "process_virtual_memory", "Virtual memory size", Some(&Unit::Bytes), virt)?;
+            gauge(&mut encoder, "process_resident_memory", "Resident memory size", Some(&Unit::Bytes), rss)?;
+        }
+        if let Ok(dir) = std::fs::read_dir("/proc/self/fd") {
+            gauge(&mut encoder, "process_open_fds", "Open file descriptors", None, dir.count() as i64)?;
+        }
+        if let Ok(limit) = rustix::process::getrlimit(rustix::process::Resource::Nofile).current.ok_or(()) {
+            gauge(&mut encoder, "process_max_fds", "Open file descriptor limit", None, limit as i64)?;
+        }
+        Ok(())
     }
 }

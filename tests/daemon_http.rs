@@ -349,9 +349,28 @@ async fn metrics_models_and_openapi_are_served_from_the_start() {
         "mcdenoise_received_bytes_total{transport=\"grpc\"} 0",
         "mcdenoise_ready 1",
         "mcdenoise_model_info{variant=\"nocov\",component=\"diffuse\"",
+        &format!("mcdenoise_build_info{{version=\"{}\",onnxruntime=\"1.31.1\"", env!("CARGO_PKG_VERSION")),
+        "process_cpu_seconds_total ",
+        "process_resident_memory_bytes ",
+        "process_open_fds ",
+        "process_max_fds ",
+        "process_threads ",
+        "process_start_time_seconds ",
     ] {
         assert!(text.contains(line), "missing `{line}` in:\n{text}");
     }
+    let rss: f64 = text.lines().find_map(|l| l.strip_prefix("process_resident_memory_bytes ")).unwrap().parse().unwrap();
+    assert!(rss > 1e6, "{rss}");
+
+    let (status, info) = d.get_json("/v1/info").await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(info["version"], env!("CARGO_PKG_VERSION"));
+    assert_eq!((info["phase"].as_str(), info["ready"].as_bool()), (Some("ready"), Some(true)));
+    assert_eq!(info["device"]["kind"], "cpu");
+    assert_eq!(info["device"]["workers"], 1);
+    assert_eq!(info["models"].as_array().map(Vec::len), Some(4), "{info}");
+    assert_eq!(info["settings"]["queue_capacity"], 256, "{info}");
+    assert!(info["settings"]["data_dir"].as_str().unwrap().contains(dir.path().to_str().unwrap()));
 
     let (status, models) = d.get_json("/v1/models").await;
     assert_eq!(status, StatusCode::OK);
@@ -366,7 +385,7 @@ async fn metrics_models_and_openapi_are_served_from_the_start() {
     let (status, api) = d.get_json("/v1/openapi.json").await;
     assert_eq!(status, StatusCode::OK);
     assert_eq!(api["openapi"], "3.1.0");
-    for path in ["/v1/jobs", "/v1/jobs/{id}", "/v1/jobs/{id}/events", "/v1/jobs/{id}/result", "/readyz", "/metrics"] {
+    for path in ["/v1/jobs", "/v1/jobs/{id}", "/v1/jobs/{id}/events", "/v1/jobs/{id}/result", "/v1/info", "/readyz", "/metrics"] {
         assert!(api["paths"][path].is_object(), "{path}");
     }
 
@@ -477,7 +496,15 @@ async fn a_wrong_token_on_a_large_upload_is_answered_401_counted_and_logged() {
     let err = grpc.list_jobs(mcdenoise::grpc::pb::ListJobsRequest::default()).await.unwrap_err();
     assert_eq!(err.code(), tonic::Code::Unauthenticated);
     assert_eq!(d.http.get("/v1/jobs").await.unwrap().status(), StatusCode::UNAUTHORIZED);
+    let submitter = mcdenoise::client::HttpClient::new(&d.base, Some("tok"));
+    let (status, info) = submitter.json(Method::GET, "/v1/info", &[], body_bytes(vec![])).await.unwrap();
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!((info["caller"]["scope"].as_str(), info["settings"].is_null()), (Some("submit"), true), "{info}");
     let ops = mcdenoise::client::HttpClient::new(&d.base, Some("ops"));
+    let (_, info) = ops.json(Method::GET, "/v1/info", &[], body_bytes(vec![])).await.unwrap();
+    assert_eq!(info["caller"]["scope"], "operator");
+    assert_eq!(info["settings"]["auth"], "1 submit token(s), 1 operator token(s)", "{info}");
+    assert!(!info.to_string().contains("\"tok\"") && !info.to_string().contains("\"ops\""), "{info}");
     let (status, text) = ops.json(Method::GET, "/metrics", &[], body_bytes(vec![])).await.unwrap();
     assert_eq!(status, StatusCode::OK);
     let text = text.as_str().unwrap();

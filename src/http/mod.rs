@@ -45,6 +45,21 @@ pub struct AppState {
     pub tokens: Arc<Tokens>,
     /// Cancelled when the server stops: open event streams end.
     pub shutdown: CancellationToken,
+    /// What `/v1/info` says of the process.
+    pub info: Arc<Info>,
+}
+
+/// The process's identity for `/v1/info`: when it started and its settings (without
+/// secrets: [`crate::config::ServeArgs::summary`]).
+pub struct Info {
+    started: std::time::SystemTime,
+    settings: Value,
+}
+
+impl Info {
+    pub fn new(settings: Value) -> Info {
+        Info { started: std::time::SystemTime::now(), settings }
+    }
 }
 
 /// Every route that needs a bearer token (when tokens are configured), as
@@ -60,6 +75,7 @@ pub const PROTECTED_ROUTES: &[(&str, &str)] = &[
     ("GET", "/v1/jobs/{id}/events"),
     ("GET", "/v1/jobs/{id}/result"),
     ("GET", "/v1/models"),
+    ("GET", "/v1/info"),
     ("GET", "/v1/openapi.json"),
     ("GET", "/metrics"),
 ];
@@ -77,6 +93,7 @@ fn handler(method: &str, path: &str) -> axum::routing::MethodRouter<AppState> {
         ("GET", "/v1/jobs/{id}/events") => get(events),
         ("GET", "/v1/jobs/{id}/result") => get(result),
         ("GET", "/v1/models") => get(models),
+        ("GET", "/v1/info") => get(info),
         ("GET", "/v1/openapi.json") => get(openapi),
         ("GET", "/metrics") => get(metrics),
         ("GET", "/livez") => get(livez),
@@ -247,6 +264,33 @@ async fn models(State(app): State<AppState>) -> Result<Json<Value>, ApiError> {
         "threads_per_worker": s.engine.threads,
         "models": models,
     })))
+}
+
+/// `GET /v1/info`: version, device, phase, the loaded models (null while loading), uptime,
+/// and for callers allowed the metrics the settings.
+async fn info(State(app): State<AppState>, Extension(caller): Extension<Caller>) -> Json<Value> {
+    let s = app.service.settings();
+    let started = app.info.started;
+    let uptime = started.elapsed().unwrap_or_default().as_secs_f64();
+    let started_ms = started.duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_millis() as i64;
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    Json(json!({
+        "version": env!("CARGO_PKG_VERSION"),
+        "onnxruntime": crate::engine::runtime::ORT_VERSION,
+        "started_at": crate::jobs::record::rfc3339(started_ms),
+        "uptime_seconds": (uptime * 1e3).round() / 1e3,
+        "phase": app.service.phase(),
+        "ready": app.service.is_ready(),
+        "device": {
+            "kind": "cpu",
+            "cores": cores,
+            "workers": s.workers,
+            "threads_per_worker": s.engine.threads,
+        },
+        "models": app.service.models(),
+        "caller": { "scope": caller.scope.name() },
+        "settings": if caller.metrics { app.info.settings.clone() } else { Value::Null },
+    }))
 }
 
 async fn openapi() -> Response {
