@@ -189,6 +189,14 @@ async fn a_full_queue_answers_429_with_retry_after_and_grpc_resource_exhausted()
     let status = grpc.submit_job(upload).await.unwrap_err();
     assert_eq!(status.code(), tonic::Code::ResourceExhausted, "{status:?}");
     assert!(status.metadata().get("retry-after").is_some());
+    // A machine-readable reason: google.rpc.ErrorInfo, as the HTTP code in capitals.
+    use tonic_types::StatusExt;
+    let info = status.get_details_error_info().expect("an ErrorInfo detail");
+    assert_eq!((info.reason.as_str(), info.domain.as_str()), ("QUEUE_FULL", "mcdenoise"));
+    assert_eq!(info.metadata.get("code").map(String::as_str), Some("queue_full"));
+    assert!(info.metadata.get("retry_after_s").is_some_and(|s| s.parse::<u64>().unwrap() >= 1), "{info:?}");
+    let missing = grpc.get_job(mcdenoise::grpc::pb::GetJobRequest { id: "nope".into() }).await.unwrap_err();
+    assert_eq!(missing.get_details_error_info().map(|i| i.reason), Some("NOT_FOUND".to_string()));
 
     let (_, metrics) = d.get_json("/metrics").await;
     let metrics = metrics.as_str().unwrap().to_string();

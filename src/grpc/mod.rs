@@ -28,42 +28,54 @@ pub mod pb {
 }
 
 use pb::denoiser_server::{Denoiser, DenoiserServer};
+use tonic::Code;
+use tonic_types::{ErrorDetails, StatusExt};
 
 /// Largest gRPC message accepted or sent: chunks of up to 4 MiB plus framing.
 pub const MAX_MESSAGE_BYTES: usize = 4 * 1024 * 1024 + 64 * 1024;
 /// Size of the chunks of `FetchResult`.
 pub const RESULT_CHUNK_BYTES: usize = 1024 * 1024;
 
-/// The gRPC status of each error (exhaustive: a new variant must be mapped here).
-/// `QueueFull` carries a `retry-after` metadata entry in seconds.
+/// The gRPC status of each error (exhaustive: a new variant must be mapped here). Every
+/// status carries a `google.rpc.ErrorInfo` detail (`grpc-status-details-bin`) whose reason
+/// is the error's code in capitals (`QUEUE_FULL`, as `queue_full` in HTTP answers), domain
+/// `mcdenoise`, metadata `code` (the HTTP code) and, for refusals to retry later,
+/// `retry_after_s`; those also carry a `retry-after` metadata entry in seconds.
 pub fn status(e: &Error) -> Status {
     let message = e.to_string();
-    match e {
-        Error::BadRequest(_) | Error::InvalidFrame(_) | Error::TooLarge(_) => Status::invalid_argument(message),
-        Error::Timeout(_) => Status::deadline_exceeded(message),
-        Error::Unauthenticated(_) => Status::unauthenticated(message),
-        Error::Forbidden(_) => Status::permission_denied(message),
-        Error::NotFound(_) => Status::not_found(message),
-        Error::Conflict(_) => Status::failed_precondition(message),
-        Error::InProgress(_) => Status::aborted(message),
+    let (code, retry_after_s) = match e {
+        Error::BadRequest(_) | Error::InvalidFrame(_) | Error::TooLarge(_) => (Code::InvalidArgument, None),
+        Error::Timeout(_) => (Code::DeadlineExceeded, None),
+        Error::Unauthenticated(_) => (Code::Unauthenticated, None),
+        Error::Forbidden(_) => (Code::PermissionDenied, None),
+        Error::NotFound(_) => (Code::NotFound, None),
+        Error::Conflict(_) => (Code::FailedPrecondition, None),
+        Error::InProgress(_) => (Code::Aborted, None),
         Error::QueueFull { retry_after_s, .. } | Error::ClientLimit { retry_after_s, .. } => {
-            let mut s = Status::resource_exhausted(message);
-            s.metadata_mut().insert("retry-after", MetadataValue::from(*retry_after_s));
-            s
+            (Code::ResourceExhausted, Some(*retry_after_s))
         }
-        Error::Unavailable(_) => Status::unavailable(message),
-        Error::Storage { .. } => {
-            let mut s = Status::unavailable(message);
-            s.metadata_mut().insert("retry-after", MetadataValue::from(5u64));
-            s.metadata_mut().insert("error-code", MetadataValue::from_static(e.code()));
-            s
-        }
+        Error::Unavailable(_) => (Code::Unavailable, None),
+        Error::Storage { .. } => (Code::Unavailable, Some(5)),
         Error::Internal(_) => {
             tracing::error!(error = %message, "grpc call failed");
-            Status::internal(message)
+            (Code::Internal, None)
         }
+    };
+    let mut metadata = tonic::metadata::MetadataMap::new();
+    let mut info = std::collections::HashMap::from([("code".to_string(), e.code().to_string())]);
+    if let Some(s) = retry_after_s {
+        metadata.insert("retry-after", MetadataValue::from(s));
+        info.insert("retry_after_s".into(), s.to_string());
     }
+    if matches!(e, Error::Storage { .. }) {
+        metadata.insert("error-code", MetadataValue::from_static(e.code()));
+    }
+    let details = ErrorDetails::with_error_info(e.code().to_ascii_uppercase(), ERROR_DOMAIN, info);
+    Status::with_error_details_and_metadata(code, message, details, metadata)
 }
+
+/// The `domain` of the daemon's `google.rpc.ErrorInfo` details.
+pub const ERROR_DOMAIN: &str = "mcdenoise";
 
 fn invalid(message: impl Into<String>) -> Status {
     status(&Error::BadRequest(message.into()))
