@@ -38,6 +38,8 @@ pub struct Output {
     pub sanitized: Sanitized,
     /// Variance buffers the frame lacked, taken as 0.
     pub missing_variances: Vec<String>,
+    /// What the frame's passes could only approximate.
+    pub warnings: Vec<String>,
     /// Samples the firefly handling clamped.
     pub fireflies: FireflyReport,
     /// Milliseconds per stage; `queue` is 0 (the pipeline does not know about queues), and
@@ -172,6 +174,7 @@ pub fn run(
         metrics,
         sanitized: frame.sanitized,
         missing_variances: frame.missing_variances,
+        warnings: frame.warnings,
         fireflies: out.fireflies,
         timings,
         fireflies_ms: out.timings.fireflies.as_secs_f64() * 1e3,

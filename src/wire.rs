@@ -48,6 +48,9 @@ pub struct JobView {
     pub sanitized: Option<SanitizedCounts>,
     #[serde(default)]
     pub missing_variances: Vec<String>,
+    /// What the frame's renderer passes could only approximate.
+    #[serde(default)]
+    pub warnings: Vec<String>,
     pub error: Option<JobError>,
     pub result_bytes: Option<u64>,
     /// RFC 3339 times.
@@ -116,6 +119,7 @@ impl From<&JobStatus> for JobView {
             metrics: r.metrics,
             sanitized: r.sanitized.clone(),
             missing_variances: r.missing_variances.clone(),
+            warnings: r.warnings.clone(),
             error: r.error.clone(),
             result_bytes: r.result_bytes,
             created_at: rfc3339(r.created_at_ms),
@@ -395,6 +399,7 @@ impl From<&JobStatus> for pb::Job {
                 .as_ref()
                 .map(|e| pb::JobError { code: e.code.name().to_string(), message: e.message.clone() }),
             missing_variances: r.missing_variances.clone(),
+            warnings: r.warnings.clone(),
             fireflies: r.fireflies.map(|f| pb::Fireflies {
                 mode: f.mode.name().to_string(),
                 strength: f.strength,
@@ -481,6 +486,7 @@ impl TryFrom<pb::Job> for JobView {
                 .sanitized
                 .map(|s| SanitizedCounts { total: s.total, by_buffer: s.by_buffer.into_iter().collect() }),
             missing_variances: j.missing_variances,
+            warnings: j.warnings,
             error,
             result_bytes: (j.result_bytes > 0 || state == JobState::Succeeded).then_some(j.result_bytes),
             created_at: rfc3339(j.created_at_ms),
@@ -546,6 +552,7 @@ mod tests {
                 by_component: FireflyReport { diffuse: 2, specular: 3 },
             }),
             missing_variances: vec!["depthVariance".into()],
+            warnings: vec!["a warning".into()],
             error: Some(JobError { code: JobErrorCode::Internal, message: "disk full".into() }),
             result_bytes: Some(123),
             client: Some("token:abc".into()),

@@ -575,3 +575,23 @@ async fn events_have_ids_resume_after_last_event_id_and_end_with_deleted() {
     assert_eq!(got[1].data["id"], queued.as_str());
     d.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cycles_frame_without_the_diffuse_passes_is_denoised_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let (bytes, _) = common::cycles_frame(32, 24, |p| !p.starts_with("Diffuse"));
+    let id = d.submit_ok(&bytes, "").await;
+    let job = d.wait_state(&id, "succeeded").await;
+    let warnings = job["warnings"].as_array().unwrap();
+    assert_eq!(warnings.len(), 1, "{job}");
+    assert!(warnings[0].as_str().unwrap().contains("Diffuse Direct, Indirect and Color passes"), "{job}");
+    let mut grpc = mcdenoise::client::grpc_connect(&d.grpc, None).await.unwrap();
+    let pb = grpc.get_job(mcdenoise::grpc::pb::GetJobRequest { id: id.clone() }).await.unwrap().into_inner();
+    assert_eq!(pb.warnings.len(), 1);
+    let (bytes, _) = common::cycles_frame(32, 24, |_| true);
+    let id = d.submit_ok(&bytes, "").await;
+    assert_eq!(d.wait_state(&id, "succeeded").await["warnings"], serde_json::json!([]));
+    d.stop().await;
+}

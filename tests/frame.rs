@@ -91,7 +91,7 @@ fn missing_channels_are_listed() {
         named_planes(W, H, false).into_iter().filter(|(n, _)| !n.starts_with("albedo.") && n != "depth.Z").collect();
     let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
     match &err {
-        FrameError::MissingChannels { missing, available } => {
+        FrameError::MissingChannels { missing, available, .. } => {
             assert_eq!(missing, &["albedo.R", "albedo.G", "albedo.B", "depth.Z"]);
             assert!(available.contains(&"diffuse.R".to_string()));
         }
@@ -200,43 +200,9 @@ fn reference_needs_only_a_color() {
     assert!(err.to_string().contains("R, G, B (or diffuse"), "{err}");
 }
 
-/// A frame as Blender Cycles writes it: one part per pass `ViewLayer.<pass>`, no diffuse or
-/// specular buffer, no variance, background depth 1e10.
-fn cycles_frame() -> (Vec<u8>, Vec<(String, Vec<f32>)>) {
-    let planes = named_planes(W, H, false);
-    let get = |n: &str| planes.iter().find(|(k, _)| k == n).unwrap().1.clone();
-    let mut parts: Vec<(String, NamedPlanes)> = Vec::new();
-    let mut pass = |name: &str, chans: &[&str], data: Vec<Vec<f32>>| {
-        let list = chans.iter().zip(data).map(|(c, d)| (c.to_string(), d)).collect();
-        parts.push((format!("ViewLayer.{name}"), list));
-    };
-    let rgb = ["R", "G", "B"];
-    let (d, s, a): (Vec<_>, Vec<_>, Vec<_>) = (
-        rgb.iter().map(|c| get(&format!("diffuse.{c}"))).collect(),
-        rgb.iter().map(|c| get(&format!("specular.{c}"))).collect(),
-        rgb.iter().map(|c| get(&format!("albedo.{c}"))).collect(),
-    );
-    let irradiance = |c: usize, share: f32| d[c].iter().zip(&a[c]).map(|(d, a)| share * d / a).collect::<Vec<f32>>();
-    pass("Combined", &["R", "G", "B", "A"], {
-        let mut v: Vec<Vec<f32>> = (0..3).map(|c| d[c].iter().zip(&s[c]).map(|(x, y)| x + y).collect()).collect();
-        v.push(vec![1.0; W * H]);
-        v
-    });
-    pass("Diffuse Direct", &rgb, (0..3).map(|c| irradiance(c, 0.7)).collect());
-    pass("Diffuse Indirect", &rgb, (0..3).map(|c| irradiance(c, 0.3)).collect());
-    pass("Diffuse Color", &rgb, a.clone());
-    pass("Denoising Albedo", &rgb, a.clone());
-    pass("Denoising Normal", &["X", "Y", "Z"], rgb.iter().map(|c| get(&format!("normal.{c}"))).collect());
-    let mut depth = get("depth.Z");
-    depth[0] = 1e10;
-    pass("Depth", &["Z"], vec![depth]);
-    let spec: Vec<_> = parts.iter().map(|(p, l)| (p.as_str(), (W, H), l.clone())).collect();
-    (exr_multi(&spec, Sample::F32), planes)
-}
-
 #[test]
 fn cycles_passes_give_the_diffuse_specular_split_and_missing_variances_are_zero() {
-    let (bytes, planes) = cycles_frame();
+    let (bytes, planes) = cycles_frame(W, H, |_| true);
     let frame = frame_of(&bytes);
     let get = |n: &str| planes.iter().find(|(k, _)| k == n).unwrap().1.clone();
     for (i, c) in ["R", "G", "B"].into_iter().enumerate() {
@@ -272,4 +238,30 @@ fn a_frame_without_any_variance_is_accepted_and_reports_it() {
     let planes: Vec<_> = planes.into_iter().filter(|(n, _)| !n.starts_with("normal")).collect();
     let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
     assert!(err.to_string().contains("normal.R"), "{err}");
+}
+
+#[test]
+fn cycles_frames_lacking_passes_are_named_in_blender_terms() {
+    // Without the Diffuse passes: accepted, all light taken as diffuse, and said so.
+    let (bytes, _) = cycles_frame(W, H, |p| !p.starts_with("Diffuse"));
+    let frame = frame_of(&bytes);
+    assert_eq!(frame.warnings, [mcdenoise::frame::renderers::CYCLES_NO_DIFFUSE]);
+    assert!(frame.plane(Buffer::Specular, 0).iter().all(|v| *v == 0.0));
+    assert!(frame_of(&cycles_frame(W, H, |_| true).0).warnings.is_empty());
+    // Without Denoising Data: refused, saying which option to enable.
+    let (bytes, _) = cycles_frame(W, H, |p| !p.starts_with("Denoising") && p != "Depth");
+    let err = Frame::from_exr_bytes(&bytes, &Limits::default()).unwrap_err().to_string();
+    assert!(err.contains("albedo.R") && err.contains("enable View Layer Properties > Passes > Data > Denoising Data"), "{err}");
+}
+
+#[test]
+fn a_beauty_albedo_normal_frame_is_refused_naming_the_beauty_variant() {
+    let planes: Vec<_> = named_planes(W, H, false)
+        .into_iter()
+        .filter(|(n, _)| n.starts_with("albedo.") || n.starts_with("normal."))
+        .chain(["R", "G", "B"].map(|c| (c.to_string(), vec![0.5; W * H])))
+        .collect();
+    let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
+    let err = err.to_string();
+    assert!(err.contains("only beauty (R,G,B), albedo and normal") && err.contains("`beauty` variant"), "{err}");
 }

@@ -62,7 +62,7 @@ pub fn read_header(reader: impl std::io::Read, limits: &Limits) -> std::result::
         }
     }
     let Some((_, (width, height))) = size else {
-        return Err(FrameError::MissingChannels { missing: vec!["any channel".into()], available: vec![] });
+        return Err(FrameError::MissingChannels { missing: vec!["any channel".into()], available: vec![], hint: None });
     };
     if width == 0 || height == 0 {
         return Err(FrameError::Empty { width, height });

@@ -34,8 +34,9 @@ impl Default for Limits {
 /// Why a frame was refused. Every variant names what is wrong.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum FrameError {
-    #[error("missing channels: {} (the file has: {})", missing.join(", "), available_summary(available))]
-    MissingChannels { missing: Vec<String>, available: Vec<String> },
+    #[error("missing channels: {} (the file has: {}){}", missing.join(", "), available_summary(available),
+            hint.as_ref().map(|h| format!("; {h}")).unwrap_or_default())]
+    MissingChannels { missing: Vec<String>, available: Vec<String>, hint: Option<String> },
     #[error("channel {channel} is {}x{} but {reference} is {}x{}", size.0, size.1, expected.0, expected.1)]
     SizeMismatch { channel: String, size: (usize, usize), reference: String, expected: (usize, usize) },
     #[error("channel {0} appears more than once")]
@@ -88,6 +89,9 @@ pub struct Frame {
     /// Variance buffers the file did not have, taken as 0
     /// ([`Frame::fill_missing_variances`]).
     pub missing_variances: Vec<String>,
+    /// What the file's renderer passes could only approximate (see
+    /// [`renderers::warnings`]); reported with the job.
+    pub warnings: Vec<String>,
 }
 
 impl Frame {
@@ -102,6 +106,7 @@ impl Frame {
         if width == 0 || height == 0 {
             return Err(FrameError::Empty { width, height });
         }
+        let warnings = renderers::warnings(&planes.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>());
         renderers::derive(&mut planes, width * height);
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
         check_required(&names, required)?;
@@ -128,7 +133,7 @@ impl Frame {
             }
             buffers[buffer as usize] = Some(taken);
         }
-        Ok(Frame { width, height, buffers, sanitized, missing_variances: Vec::new() })
+        Ok(Frame { width, height, buffers, sanitized, missing_variances: Vec::new(), warnings })
     }
 
     /// Fills the variance buffers the renderer did not write with 0 for every buffer that is
@@ -238,7 +243,7 @@ pub fn check_required(names: &[&str], required: &[Buffer]) -> Result<(), FrameEr
     }
     let mut available: Vec<String> = names.iter().map(|s| s.to_string()).collect();
     available.sort();
-    Err(FrameError::MissingChannels { missing, available })
+    Err(FrameError::MissingChannels { missing, available, hint: renderers::hint(names) })
 }
 
 /// The channels `names` lacks for `buffer`: the rest of its most complete spelling (a file
@@ -271,6 +276,7 @@ pub fn check_reference(names: &[&str]) -> Result<(), FrameError> {
         FrameError::MissingChannels { available, .. } => FrameError::MissingChannels {
             missing: vec!["R, G, B (or diffuse.R/G/B and specular.R/G/B)".into()],
             available,
+            hint: None,
         },
         other => other,
     })

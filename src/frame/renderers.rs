@@ -118,6 +118,48 @@ pub fn recipes(names: &[&str]) -> Vec<(String, Recipe)> {
     out
 }
 
+/// The Cycles fallback: all light taken as diffuse.
+pub const CYCLES_NO_DIFFUSE: &str = "the frame has the Cycles Combined pass but not the Diffuse Direct, Indirect and \
+     Color passes: all light was treated as diffuse (divided by the albedo), so glossy highlights and reflections \
+     are denoised as texture; enable the Diffuse passes (View Layer Properties > Passes > Light) for the exact split";
+
+/// What [`recipes`] can only approximate for `names`, as messages for the job.
+pub fn warnings(names: &[&str]) -> Vec<String> {
+    let fallback = recipes(names).iter().any(|(n, r)| n == "specular.R" && *r == Recipe::Zero);
+    if fallback {
+        vec![CYCLES_NO_DIFFUSE.to_string()]
+    } else {
+        Vec::new()
+    }
+}
+
+/// Why a frame that lacks required buffers lacks them, in its renderer's terms, when its
+/// channels say which renderer or which kind of output it is.
+pub fn hint(names: &[&str]) -> Option<String> {
+    let all = with_derived(names);
+    let all: Vec<&str> = all.iter().map(String::as_str).collect();
+    let resolved = super::layout::resolve(&all);
+    let has = |b: super::Buffer| resolved[b as usize].is_some();
+    use super::Buffer::{Albedo, Color, Depth, Diffuse, Normal, Specular};
+    let cycles = passes(names).contains_key("Combined");
+    if cycles && !(has(Albedo) && has(Normal) && has(Depth)) {
+        return Some(
+            "a Blender Cycles frame needs the Denoising Data passes (albedo, normal, depth): enable View Layer \
+             Properties > Passes > Data > Denoising Data"
+                .into(),
+        );
+    }
+    if has(Color) && !has(Diffuse) && !has(Specular) && has(Albedo) && has(Normal) {
+        return Some(
+            "this frame has only beauty (R,G,B), albedo and normal: frames without the diffuse/specular split need \
+             the `beauty` variant, which this daemon does not serve yet; write the diffuse and specular layers \
+             (docs/frame-layout.md) or, from Cycles, the Diffuse Direct, Indirect and Color passes"
+                .into(),
+        );
+    }
+    None
+}
+
 /// `names` plus the canonical names [`recipes`] can derive.
 pub fn with_derived(names: &[&str]) -> Vec<String> {
     let mut all: Vec<String> = names.iter().map(|s| s.to_string()).collect();

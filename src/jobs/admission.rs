@@ -264,6 +264,7 @@ impl JobService {
             sanitized: None,
             fireflies: None,
             missing_variances: Vec::new(),
+            warnings: Vec::new(),
             error: None,
             result_bytes: None,
             client: Some(ticket.client().as_str().to_string()),

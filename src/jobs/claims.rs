@@ -247,6 +247,7 @@ impl WorkerLink {
                 by_component: out.fireflies,
             },
             missing_variances: out.missing_variances,
+            warnings: out.warnings,
             result_bytes: out.encoded.len() as u64,
         };
         // The summary, with the estimated timings: recovery adopts it if the process stops

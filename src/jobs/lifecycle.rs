@@ -30,6 +30,7 @@ pub(super) struct Finished {
     pub sanitized: SanitizedCounts,
     pub fireflies: FireflyCounts,
     pub missing_variances: Vec<String>,
+    pub warnings: Vec<String>,
     pub result_bytes: u64,
 }
 
@@ -43,6 +44,7 @@ impl Finished {
         r.sanitized = Some(self.sanitized);
         r.fireflies = Some(self.fireflies);
         r.missing_variances = self.missing_variances;
+        r.warnings = self.warnings;
         r.error = None;
         r.result_bytes = Some(self.result_bytes);
     }

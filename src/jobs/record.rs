@@ -315,6 +315,10 @@ pub struct JobRecord {
     /// Variance buffers the frame lacked, taken as 0 (docs/frame-layout.md).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub missing_variances: Vec<String>,
+    /// What the frame's renderer passes could only approximate (e.g. a Cycles frame without
+    /// the Diffuse passes), set once the job has run.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     pub error: Option<JobError>,
     pub result_bytes: Option<u64>,
     /// Who submitted it (`token:<digest prefix>` or `ip:<address>`), for per-client limits.

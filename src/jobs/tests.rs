@@ -391,6 +391,7 @@ fn record(id: &str, seq: u64, state: JobState) -> JobRecord {
         sanitized: None,
         fireflies: None,
         missing_variances: Vec::new(),
+        warnings: Vec::new(),
         error: None,
         result_bytes: None,
         client: None,

@@ -85,3 +85,43 @@ pub fn max_rel_diff(a: &[f32], b: &[f32]) -> f32 {
     let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
     a.iter().zip(b).map(|(x, y)| (x - y).abs() / scale).fold(0f32, f32::max)
 }
+
+/// A frame as Blender Cycles writes it: one part per pass `ViewLayer.<pass>`, no diffuse or
+/// specular buffer, no variance, background depth 1e10; only the passes `keep` accepts.
+pub fn cycles_frame(w: usize, h: usize, keep: impl Fn(&str) -> bool) -> (Vec<u8>, Vec<(String, Vec<f32>)>) {
+    #[allow(non_snake_case)]
+    let (W, H) = (w, h);
+    let planes = named_planes(W, H, false);
+    let get = |n: &str| planes.iter().find(|(k, _)| k == n).unwrap().1.clone();
+    let mut parts: Vec<(String, NamedPlanes)> = Vec::new();
+    let mut pass = |name: &str, chans: &[&str], data: Vec<Vec<f32>>| {
+        if !keep(name) {
+            return;
+        }
+        let list = chans.iter().zip(data).map(|(c, d)| (c.to_string(), d)).collect();
+        parts.push((format!("ViewLayer.{name}"), list));
+    };
+    let rgb = ["R", "G", "B"];
+    let (d, s, a): (Vec<_>, Vec<_>, Vec<_>) = (
+        rgb.iter().map(|c| get(&format!("diffuse.{c}"))).collect(),
+        rgb.iter().map(|c| get(&format!("specular.{c}"))).collect(),
+        rgb.iter().map(|c| get(&format!("albedo.{c}"))).collect(),
+    );
+    let irradiance = |c: usize, share: f32| d[c].iter().zip(&a[c]).map(|(d, a)| share * d / a).collect::<Vec<f32>>();
+    pass("Combined", &["R", "G", "B", "A"], {
+        let mut v: Vec<Vec<f32>> = (0..3).map(|c| d[c].iter().zip(&s[c]).map(|(x, y)| x + y).collect()).collect();
+        v.push(vec![1.0; W * H]);
+        v
+    });
+    pass("Diffuse Direct", &rgb, (0..3).map(|c| irradiance(c, 0.7)).collect());
+    pass("Diffuse Indirect", &rgb, (0..3).map(|c| irradiance(c, 0.3)).collect());
+    pass("Diffuse Color", &rgb, a.clone());
+    pass("Denoising Albedo", &rgb, a.clone());
+    pass("Denoising Normal", &["X", "Y", "Z"], rgb.iter().map(|c| get(&format!("normal.{c}"))).collect());
+    let mut depth = get("depth.Z");
+    depth[0] = 1e10;
+    pass("Depth", &["Z"], vec![depth]);
+    let spec: Vec<_> = parts.iter().map(|(p, l)| (p.as_str(), (W, H), l.clone())).collect();
+    (exr_multi(&spec, Sample::F32), planes)
+}
+
