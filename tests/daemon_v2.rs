@@ -17,7 +17,7 @@ async fn v2_and_named_variants_are_served_like_v1() {
     let dir = tempfile::tempdir().unwrap();
     let models = mixed();
     let models_arg = models.path().display().to_string();
-    let d = start(dir.path(), &["--models", &models_arg, "--tile-v2", "16"]).await;
+    let d = start(dir.path(), &["--models", &models_arg, "--tile-v2", "16", "--debug-tile-delay", "30ms"]).await;
     d.ready().await;
 
     let (status, listing) = d.get_json("/v1/models").await;
@@ -56,6 +56,12 @@ async fn v2_and_named_variants_are_served_like_v1() {
     let (status, body) = d.result(&id).await;
     assert_eq!(status, StatusCode::OK);
     assert!(!body.is_empty());
+
+    // A running job's tile count is that of its model's contract from the start.
+    let id = d.submit_ok(&with_cov, "variant=full").await;
+    let running = d.wait_running(&id).await;
+    let done = d.wait_state(&id, "succeeded").await;
+    assert_eq!(running["progress"]["tiles_total"], done["progress"]["tiles_total"], "{running}\n{done}");
 
     // Named: lin2020 for a frame with covariance; refused at run time without it.
     let id = d.submit_ok(&with_cov, "variant=lin2020").await;
