@@ -412,6 +412,7 @@ fn daemon() -> &'static Daemon {
             service: service.clone(),
             tokens: Arc::new(Tokens::default()),
             shutdown: tokio_util::sync::CancellationToken::new(),
+            info: Arc::new(mcdenoise::http::Info::new(serde_json::Value::Null)),
         };
         let router = mcdenoise::http::router(state);
         Daemon { runtime, service, router, _dir: dir }
