@@ -184,6 +184,9 @@ fn run_keeps_overscan_attributes_alpha_and_with_all_every_aov() {
     // Without `all`, the alpha only; with it, the fixture's channels too.
     let plain_result = read_exr(&std::fs::read(&plain_out).unwrap());
     assert_eq!(channel_names(&plain_result), ["A", "B", "G", "R"]);
+    let plain_input = read_exr(&std::fs::read(&plain).unwrap());
+    let alpha = |image: &exr::prelude::Image<_>| bits(&channel_of(image, "A").sample_data);
+    assert!(alpha(&plain_result) == alpha(&plain_input), "the alpha is carried bit for bit");
     let names = channel_names(&result);
     assert!(names.len() > 20 && EXTRA_CHANNELS.iter().all(|c| names.contains(&c.to_string())), "{names:?}");
     // The denoised image is in place: where the two overlap, away from the edges (which the

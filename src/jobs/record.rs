@@ -107,8 +107,6 @@ pub enum Layer {
 }
 
 impl Layer {
-    pub const ALL: [Layer; 3] = [Layer::Diffuse, Layer::Specular, Layer::All];
-
     pub fn name(self) -> &'static str {
         match self {
             Layer::Diffuse => "diffuse",
@@ -118,7 +116,7 @@ impl Layer {
     }
 
     pub fn parse(s: &str) -> Option<Layer> {
-        Layer::ALL.into_iter().find(|v| v.name() == s)
+        [Layer::Diffuse, Layer::Specular, Layer::All].into_iter().find(|v| v.name() == s)
     }
 }
 

@@ -291,10 +291,19 @@ pub fn check_carried(input: &[u8], result: &[u8], replaced: &[&str]) -> Image<La
     result
 }
 
+/// A channel of a single-part image.
+pub fn channel_of<'a>(image: &'a Image<Layers<AnyChannels<FlatSamples>>>, name: &str) -> &'a AnyChannel<FlatSamples> {
+    image.layer_data[0]
+        .channel_data
+        .list
+        .iter()
+        .find(|c| c.name == *name)
+        .unwrap_or_else(|| panic!("no channel {name}"))
+}
+
 /// Samples of a channel of a single-part image as f32.
 pub fn samples_of(image: &Image<Layers<AnyChannels<FlatSamples>>>, name: &str) -> Vec<f32> {
-    let c = image.layer_data[0].channel_data.list.iter().find(|c| c.name.to_string() == name).expect(name);
-    match &c.sample_data {
+    match &channel_of(image, name).sample_data {
         FlatSamples::F32(v) => v.clone(),
         FlatSamples::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
         FlatSamples::U32(v) => v.iter().map(|x| *x as f32).collect(),
