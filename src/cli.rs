@@ -88,7 +88,9 @@ pub struct RunArgs {
     /// Threads for inference and processing (default: all cores).
     #[arg(long, env = "MCDENOISE_THREADS")]
     pub threads: Option<usize>,
-    /// Extra layers to write besides R,G,B: `diffuse`, `specular` (comma-separated).
+    /// Extra layers to write besides R,G,B (and the input's alpha, always kept): `diffuse`,
+    /// `specular` (the denoised components), `all` (every other channel of the input,
+    /// unchanged); comma-separated, combinable.
     #[arg(long, value_delimiter = ',')]
     pub layers: Vec<String>,
     /// Model variant: `auto`, or the name of a loaded variant (`full`, `nocov`, `lin2020`, ...).

@@ -7,8 +7,8 @@
 use std::path::Path;
 use std::time::Instant;
 
-use crate::engine::{Denoiser, EngineError, Fireflies, FireflyReport, Progress, Variant};
-use crate::frame::{write_exr, Frame, FrameError, Limits, OutputLayer, Sanitized};
+use crate::engine::{Denoised, Denoiser, EngineError, Fireflies, FireflyReport, Progress, Variant};
+use crate::frame::{Carried, Carry, Frame, FrameError, Limits, Sanitized};
 use crate::jobs::{Layer, Timings};
 use crate::quality::Comparison;
 
@@ -21,12 +21,15 @@ pub struct Request<'a> {
     pub variant: Option<Variant>,
     /// Firefly handling before the networks (docs/fireflies.md).
     pub fireflies: Fireflies,
-    /// Extra layers of the result besides `R,G,B`.
+    /// Extra layers of the result besides `R,G,B` and the beauty's alpha.
     pub layers: &'a [Layer],
     pub limits: Limits,
 }
 
-/// A denoised frame, encoded.
+/// A denoised frame, encoded: float32 `R,G,B`, the requested layers, and what
+/// [`frame::Carried`] keeps of the input (windows, pixel aspect, attributes, alpha, and
+/// every other channel with [`Layer::All`]), plus the denoiser's own attributes
+/// ([`ATTRIBUTES`]).
 pub struct Output {
     pub width: usize,
     pub height: usize,
@@ -110,6 +113,45 @@ pub fn decode(path: &Path, which: Input, limits: &Limits) -> Result<Frame, Failu
     frame.map_err(|error| Failure::Invalid { which, error })
 }
 
+/// Reads and decodes the frame to denoise, with what its output carries.
+fn decode_carrying(path: &Path, limits: &Limits, carry: &Carry) -> Result<(Frame, Carried), Failure> {
+    let which = Input::Frame;
+    let bytes = std::fs::read(path).map_err(|error| Failure::Read { which, error })?;
+    Frame::from_exr_bytes_carrying(&bytes, limits, carry).map_err(|error| Failure::Invalid { which, error })
+}
+
+/// The header attributes the denoiser adds to its results: the model variant, the networks
+/// (architecture and SHA-256 of each graph) and the software version.
+pub const ATTRIBUTES: [&str; 4] =
+    ["mcdenoise/variant", "mcdenoise/model", "mcdenoise/model_sha256", "mcdenoise/version"];
+
+/// The values of [`ATTRIBUTES`] for a result of `variant`.
+fn attributes(denoiser: &dyn Denoiser, variant: Variant) -> [(&'static str, String); 4] {
+    let models: Vec<_> = denoiser.models().into_iter().filter(|m| m.variant == variant).collect();
+    let mut architectures: Vec<&str> = models.iter().map(|m| m.architecture.as_str()).collect();
+    architectures.dedup();
+    let hashes: Vec<String> =
+        models.iter().map(|m| format!("{}:{}", m.component.map_or("both", |c| c.name()), m.sha256)).collect();
+    [
+        (ATTRIBUTES[0], variant.name().to_string()),
+        (ATTRIBUTES[1], architectures.join(", ")),
+        (ATTRIBUTES[2], hashes.join(", ")),
+        (ATTRIBUTES[3], env!("CARGO_PKG_VERSION").to_string()),
+    ]
+}
+
+/// The names of the channels of a denoised color layer: `R,G,B` for `""`, else
+/// `<prefix>.R`, ...
+fn rgb_names(prefix: &str) -> [String; 3] {
+    ["R", "G", "B"].map(|c| if prefix.is_empty() { c.to_string() } else { format!("{prefix}.{c}") })
+}
+
+/// The names of the denoised channels of a result with `layers`.
+fn written(layers: &[Layer]) -> Vec<String> {
+    let components = layers.iter().filter(|l| **l != Layer::All).map(|l| l.name());
+    std::iter::once("").chain(components).flat_map(rgb_names).collect()
+}
+
 /// Runs the pipeline. `on_tile` is called after each tile; returning `false` stops the
 /// denoiser between tiles ([`EngineError::Cancelled`]).
 pub fn run(
@@ -119,7 +161,8 @@ pub fn run(
 ) -> Result<Output, Failure> {
     let started = Instant::now();
     let t = Instant::now();
-    let frame = decode(request.frame, Input::Frame, &request.limits)?;
+    let carry = Carry { all: request.layers.contains(&Layer::All), written: written(request.layers) };
+    let (mut frame, mut carried) = decode_carrying(request.frame, &request.limits, &carry)?;
     let reference = request.reference.map(|p| decode(p, Input::Reference, &request.limits)).transpose()?;
     if let Some(r) = &reference {
         check_same_size((frame.width, frame.height), (r.width, r.height))?;
@@ -134,18 +177,6 @@ pub fn run(
 
     let out = denoiser.denoise(&frame, request.variant, request.fireflies, on_tile)?;
 
-    let t = Instant::now();
-    let mut layers = vec![OutputLayer { prefix: "", planes: [&out.color[0], &out.color[1], &out.color[2]] }];
-    for layer in request.layers {
-        let planes = match layer {
-            Layer::Diffuse => &out.diffuse,
-            Layer::Specular => &out.specular,
-        };
-        layers.push(OutputLayer { prefix: layer.name(), planes: [&planes[0], &planes[1], &planes[2]] });
-    }
-    let encoded = write_exr(out.width, out.height, &layers).map_err(|e| Failure::Encode(e.to_string()))?;
-    let encode_ms = ms(t);
-
     let metrics = reference.as_ref().map(|r| {
         let (rc, noisy) = (r.color(), frame.color());
         Comparison::of(
@@ -156,27 +187,49 @@ pub fn run(
             frame.height,
         )
     });
+    drop(reference);
+
+    // The frame and the denoised planes are moved into the result, not copied.
+    let t = Instant::now();
+    let sanitized = std::mem::take(&mut frame.sanitized);
+    let missing_variances = std::mem::take(&mut frame.missing_variances);
+    let warnings = std::mem::take(&mut frame.warnings);
+    for (name, value) in attributes(&*denoiser, out.variant) {
+        carried.header.set_text(name, &value);
+    }
+    let Denoised { width, height, variant, tiles, timings: stages, fireflies, color, diffuse, specular } = out;
+    let mut components = [(Layer::Diffuse, Some(diffuse)), (Layer::Specular, Some(specular))];
+    let mut denoised: Vec<(String, Vec<f32>)> = rgb_names("").into_iter().zip(color).collect();
+    for layer in request.layers {
+        if let Some((_, planes)) = components.iter_mut().find(|(l, _)| l == layer) {
+            denoised.extend(planes.take().into_iter().flat_map(|p| rgb_names(layer.name()).into_iter().zip(p)));
+        }
+    }
+    drop(components);
+    let encoded = carried.encode(frame, denoised).map_err(|e| Failure::Encode(e.to_string()))?;
+    let encode_ms = ms(t);
+
     let timings = Timings {
         queue: 0.0,
         decode: decode_ms,
-        preprocess: (out.timings.fireflies + out.timings.preprocess).as_secs_f64() * 1e3,
-        inference: out.timings.inference.as_secs_f64() * 1e3,
-        reconstruction: out.timings.reconstruction.as_secs_f64() * 1e3,
+        preprocess: (stages.fireflies + stages.preprocess).as_secs_f64() * 1e3,
+        inference: stages.inference.as_secs_f64() * 1e3,
+        reconstruction: stages.reconstruction.as_secs_f64() * 1e3,
         encode: encode_ms,
         total: ms(started),
     };
     Ok(Output {
-        width: out.width,
-        height: out.height,
-        variant: out.variant,
-        tiles: out.tiles,
+        width,
+        height,
+        variant,
+        tiles,
         encoded,
         metrics,
-        sanitized: frame.sanitized,
-        missing_variances: frame.missing_variances,
-        warnings: frame.warnings,
-        fireflies: out.fireflies,
+        sanitized,
+        missing_variances,
+        warnings,
+        fireflies,
         timings,
-        fireflies_ms: out.timings.fireflies.as_secs_f64() * 1e3,
+        fireflies_ms: stages.fireflies.as_secs_f64() * 1e3,
     })
 }

@@ -513,7 +513,7 @@ mod tests {
             state: JobState::Failed,
             options: JobOptions {
                 priority: Priority::High,
-                layers: vec![Layer::Diffuse, Layer::Specular],
+                layers: vec![Layer::Diffuse, Layer::Specular, Layer::All],
                 idempotency_key: Some("k".into()),
                 label: Some("shot".into()),
                 variant: Some(Variant::parse("lin2020").unwrap()),
@@ -688,7 +688,7 @@ mod tests {
         assert_eq!(JobOptions::try_from(pb::JobOptions::from(&options)).unwrap(), options);
         assert_eq!(JobOptions::try_from(pb::JobOptions::from(&JobOptions::default())).unwrap(), JobOptions::default());
         let bad = OptionsQuery { layers: Some("diffuse,albedo".into()), ..Default::default() };
-        assert_eq!(bad.parse().unwrap_err(), "unknown layer `albedo` (expected diffuse or specular)");
+        assert_eq!(bad.parse().unwrap_err(), "unknown layer `albedo` (expected diffuse, specular or all)");
         let encoded = OptionsQuery { label: Some("a b&c".into()), ..Default::default() }.encode();
         assert_eq!(encoded, "label=a%20b%26c");
     }

@@ -409,6 +409,11 @@ fn corpus_files() -> Vec<(&'static str, Vec<u8>)> {
         ),
         ("subsampled-channel.exr", header_only(&small_part(&required_sampled(|n| if n == "depth.Z" { 2 } else { 1 })))),
         ("part-sizes-differ.exr", multi_part(&[("specular", (16, 8))], |_, _| {})),
+        ("part-origins-differ.exr", {
+            let mut image = common::read_exr(&multi_part(&[], |_, _| {}));
+            image.layer_data[1].attributes.layer_position = exr::prelude::Vec2(0, -2);
+            write_image(image)
+        }),
         ("channels-unsorted.exr", header_only(&small_part(&required.iter().rev().copied().collect::<Vec<_>>()))),
         // Values.
         (

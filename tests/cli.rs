@@ -181,3 +181,84 @@ fn every_serve_option_is_documented_in_the_api_reference() {
     }
     assert!(checked >= 20, "{checked}");
 }
+
+/// `mcdenoise run INPUT -o OUTPUT` with the tiny models, 64-pixel tiles, one thread and
+/// `extra`; fails the test unless it succeeds.
+fn run_ok(input: &std::path::Path, output: &std::path::Path, extra: &[&str]) {
+    let res = bin()
+        .args(["run", input.to_str().unwrap(), "-o", output.to_str().unwrap()])
+        .args(["--models", tiny_models().to_str().unwrap(), "--tile", "64", "--threads", "1"])
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+}
+
+#[test]
+fn run_keeps_overscan_attributes_alpha_and_with_all_every_aov() {
+    // A 256×256 display window rendered with 8 pixels of overscan (data window −8..263),
+    // anamorphic pixels; and the same image without the overscan.
+    let tmp = tempfile::tempdir().unwrap();
+    let display = exr::prelude::IntegerBounds::from_dimensions((256, 256));
+    let overscan = Placement { origin: (-8, -8), display, pixel_aspect: 2.0, ..Placement::plain(272, 272) };
+    let input = tmp.path().join("overscan.exr");
+    std::fs::write(&input, overscan_frame(-8, -8, 272, 272, &overscan)).unwrap();
+    let plain = tmp.path().join("plain.exr");
+    std::fs::write(&plain, overscan_frame(0, 0, 256, 256, &Placement::plain(256, 256))).unwrap();
+    let (out, plain_out) = (tmp.path().join("out.exr"), tmp.path().join("plain-out.exr"));
+    run_ok(&input, &out, &["--layers", "all", "--fireflies", "off"]);
+    run_ok(&plain, &plain_out, &["--fireflies", "off"]);
+
+    let result = check_carried(&std::fs::read(&input).unwrap(), &std::fs::read(&out).unwrap(), &[]);
+    assert_eq!(result.layer_data[0].attributes.layer_position, exr::prelude::Vec2(-8, -8));
+    assert_eq!(result.attributes.display_window, display);
+    // Without `all`, the alpha only; with it, the fixture's channels too.
+    let plain_result = read_exr(&std::fs::read(&plain_out).unwrap());
+    assert_eq!(channel_names(&plain_result), ["A", "B", "G", "R"]);
+    let plain_input = read_exr(&std::fs::read(&plain).unwrap());
+    let alpha = |image: &exr::prelude::Image<_>| bits(&channel_of(image, "A").sample_data);
+    assert!(alpha(&plain_result) == alpha(&plain_input), "the alpha is carried bit for bit");
+    let names = channel_names(&result);
+    assert!(names.len() > 20 && EXTRA_CHANNELS.iter().all(|c| names.contains(&c.to_string())), "{names:?}");
+    // The denoised image is in place: where the two overlap, away from the edges (which the
+    // overscan moves), the display window's pixels match.
+    for c in ["R", "G", "B"] {
+        let (a, b) = (samples_of(&result, c), samples_of(&plain_result, c));
+        let inner = |x: usize, y: usize| (24..232).contains(&x) && (24..232).contains(&y);
+        let (got, want): (Vec<f32>, Vec<f32>) = (0..256 * 256)
+            .filter(|i| inner(i % 256, i / 256))
+            .map(|i| (a[(i / 256 + 8) * 272 + i % 256 + 8], b[i]))
+            .unzip();
+        assert!(max_rel_diff(&got, &want) < 1e-4, "{c}: {}", max_rel_diff(&got, &want));
+    }
+}
+
+#[test]
+fn run_gives_the_same_pixels_wherever_the_data_window_lies() {
+    // Odd sizes and origins: the data window moves, the pixels do not change.
+    let tmp = tempfile::tempdir().unwrap();
+    let (w, h) = (97, 61);
+    let placed = Placement {
+        origin: (-3, 5),
+        display: exr::prelude::IntegerBounds::new((-1, 0), (91, 70)),
+        ..Placement::plain(w, h)
+    };
+    let mut outputs = Vec::new();
+    for (name, placement) in [("placed", placed), ("origin", Placement::plain(w, h))] {
+        let input = tmp.path().join(format!("{name}.exr"));
+        std::fs::write(&input, overscan_frame(5, -2, w, h, &placement)).unwrap();
+        let out = tmp.path().join(format!("{name}-out.exr"));
+        run_ok(&input, &out, &["--layers", "diffuse,all"]);
+        let result = check_carried(&std::fs::read(&input).unwrap(), &std::fs::read(&out).unwrap(), &DIFFUSE);
+        assert_eq!(
+            (result.layer_data[0].attributes.layer_position, result.attributes.display_window),
+            (exr::prelude::Vec2(placement.origin.0, placement.origin.1), placement.display)
+        );
+        outputs.push(result);
+    }
+    for c in ["R", "G", "B", "diffuse.R", "diffuse.G", "diffuse.B"] {
+        assert!(samples_of(&outputs[0], c) == samples_of(&outputs[1], c), "{c}");
+    }
+}
+
+const DIFFUSE: [&str; 3] = ["diffuse.R", "diffuse.G", "diffuse.B"];

@@ -11,7 +11,9 @@ use hyper::{Method, StatusCode};
 use mcdenoise::client::{body_bytes, read_json};
 use mcdenoise::frame::Frame;
 
-use common::{engine, frame_of, max_rel_diff};
+use common::{
+    channel_names, check_carried, engine, frame_of, max_rel_diff, overscan_frame, samples_of, Placement, EXTRA_CHANNELS,
+};
 use daemon_common::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -94,6 +96,39 @@ async fn http_round_trip_streams_progress_then_result_and_metrics() {
     assert_eq!(status, StatusCode::NOT_FOUND);
     assert_eq!(err["error"]["code"], "not_found");
     assert!(!dir.path().join("jobs").join(&id).exists(), "files removed with the job");
+    d.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_overscan_frame_comes_back_in_place_with_its_attributes_alpha_and_aovs() {
+    // Data window −8..263 in a 256×256 display window, every AOV asked back beside the
+    // denoised diffuse.
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let display = exr::prelude::IntegerBounds::from_dimensions((256, 256));
+    let placement = Placement { origin: (-8, -8), display, pixel_aspect: 1.5, ..Placement::plain(272, 272) };
+    let input = overscan_frame(-8, -8, 272, 272, &placement);
+    let id = d.submit_ok(&input, "layers=all,diffuse").await;
+    let job = wait_succeeded(&d.http, &id, Duration::from_secs(120)).await;
+    assert_eq!(job["layers"], serde_json::json!(["all", "diffuse"]));
+    assert_eq!((job["width"].as_u64(), job["height"].as_u64()), (Some(272), Some(272)));
+
+    let (status, exr) = d.result(&id).await;
+    assert_eq!(status, StatusCode::OK);
+    let result = check_carried(&input, &exr, &["diffuse.R", "diffuse.G", "diffuse.B"]);
+    assert_eq!(result.layer_data[0].attributes.layer_position, exr::prelude::Vec2(-8, -8));
+    assert_eq!(result.attributes.display_window, display);
+    let names = channel_names(&result);
+    assert!(EXTRA_CHANNELS.iter().all(|c| names.contains(&c.to_string())), "{names:?}");
+    // The pixels are the engine's output for this frame, where they were.
+    let expected = engine(32).denoise(&frame_of(&input), None, &mut |_| true).unwrap();
+    for (c, want) in ["R", "G", "B"].iter().zip(&expected.color) {
+        assert!(max_rel_diff(&samples_of(&result, c), want) < 1e-4, "{c}");
+    }
+    for (c, want) in ["diffuse.R", "diffuse.G", "diffuse.B"].iter().zip(&expected.diffuse) {
+        assert!(max_rel_diff(&samples_of(&result, c), want) < 1e-4, "{c}");
+    }
     d.stop().await;
 }
 

@@ -4,7 +4,7 @@
 mod common;
 
 use common::*;
-use mcdenoise::frame::{write_exr, Buffer, Frame, FrameError, Limits, NamedPlanes, OutputLayer};
+use mcdenoise::frame::{write_exr, Buffer, Frame, FrameError, Limits, OutputLayer};
 
 const W: usize = 19;
 const H: usize = 13;
@@ -264,4 +264,168 @@ fn a_beauty_albedo_normal_frame_is_refused_naming_the_beauty_variant() {
     let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
     let err = err.to_string();
     assert!(err.contains("only beauty (R,G,B), albedo and normal") && err.contains("`beauty` variant"), "{err}");
+}
+
+// --- What a result keeps of its input ------------------------------------------------------
+
+use exr::prelude::{f16, AnyChannel, FlatSamples, IntegerBounds, LayerAttributes, Text, Vec2, WritableImage};
+use mcdenoise::frame::{Carry, ALPHA};
+
+fn carry(all: bool) -> Carry {
+    Carry { all, written: ["R", "G", "B"].map(String::from).to_vec() }
+}
+
+/// Decodes `bytes` carrying `carry`, and encodes the result with zeros for `R,G,B`.
+fn round_trip(bytes: &[u8], carry: &Carry) -> (Vec<u8>, Vec<String>) {
+    let (frame, carried) = Frame::from_exr_bytes_carrying(bytes, &Limits::default(), carry).unwrap();
+    let names = carried.names();
+    let n = frame.pixels();
+    let denoised = ["R", "G", "B"].map(|c| (c.to_string(), vec![0.0; n])).to_vec();
+    (carried.encode(frame, denoised).unwrap(), names)
+}
+
+#[test]
+fn a_result_keeps_the_inputs_windows_attributes_and_channels_bit_for_bit() {
+    let (w, h) = (97, 61);
+    let placement = Placement {
+        origin: (-3, 5),
+        display: IntegerBounds::new((0, 0), (90, 64)),
+        pixel_aspect: 1.25,
+        attributes: renderer_attributes(),
+    };
+    let planes = named_planes(w, h, true);
+    let mut channels: Vec<AnyChannel<FlatSamples>> = Vec::new();
+    for (name, data) in &planes {
+        let mut data = data.clone();
+        if name == "albedo.G" {
+            data[7] = f32::NAN; // a network input with a NaN: replaced in the frame, kept here
+        }
+        let samples = match name.as_str() {
+            // a network input in half precision
+            "depth.Z" => FlatSamples::F16(data.iter().map(|v| f16::from_f32(*v)).collect()),
+            _ => FlatSamples::F32(data),
+        };
+        channels.push(AnyChannel::new(name.as_str(), samples));
+    }
+    let n = w * h;
+    channels
+        .push(AnyChannel::new("A", FlatSamples::F16((0..n).map(|i| f16::from_f32((i % 7) as f32 / 6.0)).collect())));
+    channels.push(AnyChannel::new("crypto00.R", FlatSamples::F16((0..n).map(|i| f16::from_bits(i as u16)).collect())));
+    channels.push(AnyChannel::new("objectId", FlatSamples::U32((0..n as u32).map(|i| i * 16_777_259).collect())));
+    let mut emission: Vec<f32> = (0..n).map(|i| i as f32 * 0.25).collect();
+    emission[3] = f32::INFINITY;
+    emission[4] = f32::from_bits(0x7fc0_1234);
+    channels.push(AnyChannel::new("emission.R", FlatSamples::F32(emission)));
+    let input = exr_placed(w, h, &placement, channels);
+
+    let (out, carried) = round_trip(&input, &carry(true));
+    assert!(carried.contains(&ALPHA.to_string()) && carried.contains(&"objectId".to_string()), "{carried:?}");
+    let (input, out) = (read_exr(&input), read_exr(&out));
+    assert_eq!(out.layer_data.len(), 1, "a single-part result");
+    assert_eq!(out.attributes.display_window, placement.display);
+    assert_eq!(out.attributes.pixel_aspect, 1.25);
+    let layer = &out.layer_data[0];
+    assert_eq!(layer.attributes.layer_position, Vec2(-3, 5));
+    assert_eq!(layer.size, Vec2(w, h));
+    let want = renderer_attributes();
+    assert_eq!(layer.attributes.world_to_camera, want.world_to_camera);
+    assert_eq!(layer.attributes.software_name, want.software_name);
+    for (name, value) in &want.other {
+        assert_eq!(layer.attributes.other.get(name), Some(value), "{name}");
+    }
+    // Every input channel comes back bit for bit in its own type, beside R,G,B.
+    let by_name = |image: &exr::prelude::Image<exr::prelude::Layers<exr::prelude::AnyChannels<FlatSamples>>>| {
+        image.layer_data[0]
+            .channel_data
+            .list
+            .iter()
+            .map(|c| (c.name.to_string(), bits(&c.sample_data)))
+            .collect::<std::collections::BTreeMap<_, _>>()
+    };
+    let (got, mut want) = (by_name(&out), by_name(&input));
+    for c in ["R", "G", "B"] {
+        want.insert(c.to_string(), ("f32", vec![0; n]));
+    }
+    assert_eq!(got.keys().collect::<Vec<_>>(), want.keys().collect::<Vec<_>>());
+    for (name, samples) in &want {
+        assert!(got[name] == *samples, "{name} changed");
+    }
+}
+
+#[test]
+fn without_all_only_the_alpha_is_carried_and_the_frame_reads_the_same() {
+    let (w, h) = (W, H);
+    let planes = named_planes(w, h, true);
+    let mut channels = f32_channels(&planes);
+    channels.push(AnyChannel::new("A", FlatSamples::F32(vec![0.5; w * h])));
+    channels.push(AnyChannel::new("crypto00.R", FlatSamples::F32(vec![1.0; w * h])));
+    let bytes = exr_placed(w, h, &Placement::plain(w, h), channels);
+    let (frame, carried) = Frame::from_exr_bytes_carrying(&bytes, &Limits::default(), &carry(false)).unwrap();
+    assert_eq!(carried.names(), [ALPHA]);
+    assert_eq!(carried.header.origin(), (0, 0));
+    assert_same_as_planes(&frame, &planes, 0.0);
+    // Denoised layers replace the input's channels of their names under `all`.
+    let with_diffuse =
+        Carry { all: true, written: ["R", "G", "B", "diffuse.R", "diffuse.G", "diffuse.B"].map(String::from).to_vec() };
+    let (_, carried) = Frame::from_exr_bytes_carrying(&bytes, &Limits::default(), &with_diffuse).unwrap();
+    let names = carried.names();
+    assert!(!names.iter().any(|n| n.starts_with("diffuse.")) && names.contains(&"specular.R".to_string()));
+}
+
+#[test]
+fn cycles_results_keep_the_combined_parts_attributes_and_alpha_and_every_pass() {
+    let (bytes, _) = cycles_frame(W, H, |_| true);
+    // The same file with attributes on the Combined part and an origin on every part.
+    let mut image = read_exr(&bytes);
+    for layer in image.layer_data.iter_mut() {
+        layer.attributes.layer_position = Vec2(-8, -8);
+        if layer.attributes.layer_name.as_ref().is_some_and(|n| n == "ViewLayer.Combined") {
+            let mut a = renderer_attributes();
+            a.layer_name = layer.attributes.layer_name.clone();
+            layer.attributes = LayerAttributes { layer_position: Vec2(-8, -8), ..a };
+        }
+    }
+    image.attributes.display_window = IntegerBounds::new((0, 0), (W - 8, H - 8));
+    let mut input = std::io::Cursor::new(Vec::new());
+    image.write().to_buffered(&mut input).unwrap();
+    let input = input.into_inner();
+
+    let (out, carried) = round_trip(&input, &carry(true));
+    assert!(carried.contains(&ALPHA.to_string()));
+    assert!(!carried.iter().any(|n| n.starts_with("ViewLayer.Combined.")), "the beauty is replaced: {carried:?}");
+    let out = read_exr(&out);
+    let layer = &out.layer_data[0];
+    assert_eq!(layer.attributes.layer_name, None);
+    assert_eq!(layer.attributes.layer_position, Vec2(-8, -8));
+    assert_eq!(out.attributes.display_window, IntegerBounds::new((0, 0), (W - 8, H - 8)));
+    assert_eq!(
+        layer.attributes.other.get(&Text::from("renderer/scene")),
+        renderer_attributes().other.get(&Text::from("renderer/scene"))
+    );
+    let got: std::collections::BTreeMap<String, _> =
+        layer.channel_data.list.iter().map(|c| (c.name.to_string(), bits(&c.sample_data))).collect();
+    for part in &image.layer_data {
+        let prefix = part.attributes.layer_name.as_ref().unwrap().to_string();
+        for c in &part.channel_data.list {
+            let name = format!("{prefix}.{}", c.name);
+            match name.as_str() {
+                "ViewLayer.Combined.A" => assert!(got["A"] == bits(&c.sample_data)),
+                n if n.starts_with("ViewLayer.Combined.") => assert!(!got.contains_key(n)),
+                n => assert!(got.get(n) == Some(&bits(&c.sample_data)), "{n}"),
+            }
+        }
+    }
+}
+
+#[test]
+fn parts_that_start_at_different_points_are_refused() {
+    let planes = named_planes(W, H, false);
+    let parts = by_part(&planes);
+    let spec: Vec<_> = parts.iter().map(|(p, l)| (p.as_str(), (W, H), l.clone())).collect();
+    let mut image = read_exr(&exr_multi(&spec, Sample::F32));
+    image.layer_data[1].attributes.layer_position = Vec2(0, -2);
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    image.write().to_buffered(&mut bytes).unwrap();
+    let err = Frame::from_exr_bytes(&bytes.into_inner(), &Limits::default()).unwrap_err();
+    assert!(matches!(err, FrameError::PartOrigins { origin: (0, -2), expected: (0, 0), .. }), "{err}");
 }

@@ -694,7 +694,7 @@ def main(argv=None) -> int:
     d.add_argument("--reference", help="a reference frame: the job reports metrics against it")
     d.add_argument("--priority", choices=["high", "normal", "low"])
     d.add_argument("--label")
-    d.add_argument("--layers", help="comma-separated: diffuse,specular")
+    d.add_argument("--layers", help="comma-separated, combinable: diffuse, specular (denoised components), all (every other input channel, unchanged)")
     d.add_argument("--variant", help="auto, or the name of a loaded variant (full, nocov, ...)")
     d.add_argument("--timeout", type=float, help="seconds to wait for the job")
     g = sub.add_parser("job", help="print a job as JSON")

@@ -63,7 +63,9 @@ pub struct SubmitArgs {
     /// Priority class: high, normal or low.
     #[arg(long, default_value = "normal")]
     pub priority: String,
-    /// Extra layers of the result besides R,G,B: diffuse, specular (comma-separated).
+    /// Extra layers of the result besides R,G,B (and the input's alpha, always kept):
+    /// diffuse, specular (the denoised components), all (every other channel of the input,
+    /// unchanged); comma-separated, combinable.
     #[arg(long, value_delimiter = ',')]
     pub layers: Vec<String>,
     /// Free-text label (shown in listings, usable as a filter).

@@ -7,7 +7,7 @@ use std::io::Cursor;
 
 use exr::prelude::*;
 
-use super::{FrameError, Limits, NamedPlanes, Plane};
+use super::{FrameError, FrameHeader, Limits, NamedPlanes, Plane};
 
 /// What an EXR header says, read without decompressing any pixel.
 #[derive(Clone, Debug, PartialEq)]
@@ -27,11 +27,26 @@ pub fn read_header(reader: impl std::io::Read, limits: &Limits) -> std::result::
     // an image non-pedantically).
     let meta = contain(|| exr::meta::MetaData::read_from_buffered(reader, true))?.map_err(map_exr_error)?;
     let mut size: Option<(String, (usize, usize))> = None;
+    let mut origin: Option<(String, (i32, i32))> = None;
     let mut channels: Vec<String> = Vec::new();
-    for header in meta.headers.iter() {
+    for (index, header) in meta.headers.iter().enumerate() {
         let part = header.own_attributes.layer_name.as_ref().map(|t| t.to_string()).unwrap_or_default();
         if header.deep {
             return Err(FrameError::Deep(if part.is_empty() { "0".into() } else { part }));
+        }
+        let position = header.own_attributes.layer_position;
+        let here = (if part.is_empty() { index.to_string() } else { part.clone() }, (position.x(), position.y()));
+        match &origin {
+            None => origin = Some(here),
+            Some((reference, expected)) if *expected != here.1 => {
+                return Err(FrameError::PartOrigins {
+                    part: here.0,
+                    origin: here.1,
+                    reference: reference.clone(),
+                    expected: *expected,
+                })
+            }
+            Some(_) => {}
         }
         let (w, h) = (header.layer_size.0, header.layer_size.1);
         let pixels = w as u64 * h as u64;
@@ -103,14 +118,24 @@ fn check_chunks(bytes: &[u8]) -> std::result::Result<(), FrameError> {
     Ok(())
 }
 
-/// Reads every channel of every part: `(width, height, [(full name, plane)])`.
+/// A decoded file: its size, its headers' attributes and every channel of every part, in
+/// the file's sample types.
+pub(super) struct Decoded {
+    pub width: usize,
+    pub height: usize,
+    /// The attributes all parts share (display window, pixel aspect, ...), from the first.
+    pub image: ImageAttributes,
+    /// Each part's own attributes (name, data window origin, custom attributes).
+    pub parts: Vec<LayerAttributes>,
+    /// Every channel, named by its full name (see [`decode`]), with the index of its part.
+    pub channels: Vec<(usize, AnyChannel<FlatSamples>)>,
+}
+
+/// Reads every channel of every part, in the file's sample types.
 ///
 /// In a multi-part file a channel's full name is `<part name>.<channel>`, unless the
 /// channel name already starts with the part name.
-pub(super) fn read_planes(
-    bytes: &[u8],
-    limits: &Limits,
-) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
+pub(super) fn decode(bytes: &[u8], limits: &Limits) -> std::result::Result<Decoded, FrameError> {
     let HeaderInfo { width, height, .. } = read_header(Cursor::new(bytes), limits)?;
     contain(|| check_chunks(bytes))??;
 
@@ -125,27 +150,54 @@ pub(super) fn read_planes(
     })?
     .map_err(map_exr_error)?;
 
-    let mut planes: NamedPlanes = Vec::new();
-    for layer in image.layer_data {
+    let mut parts = Vec::with_capacity(image.layer_data.len());
+    let mut channels = Vec::new();
+    for (index, layer) in image.layer_data.into_iter().enumerate() {
         let part = layer.attributes.layer_name.as_ref().map(|t| t.to_string()).unwrap_or_default();
-        for channel in layer.channel_data.list {
+        for mut channel in layer.channel_data.list {
             let name = full_name(&part, &channel.name.to_string());
-            let plane: Plane = match channel.sample_data {
-                FlatSamples::F16(v) => v.into_iter().map(f16::to_f32).collect(),
-                FlatSamples::F32(v) => v,
-                FlatSamples::U32(v) => v.into_iter().map(|x| x as f32).collect(),
-            };
-            if plane.len() != width * height {
+            if channel.sample_data.len() != width * height {
                 return Err(FrameError::Corrupt(format!(
                     "channel {name} holds {} samples, expected {}",
-                    plane.len(),
+                    channel.sample_data.len(),
                     width * height
                 )));
             }
-            planes.push((name, plane));
+            // Made of the bytes of two EXR names and a dot.
+            channel.name = Text::new_or_panic(&name);
+            channels.push((index, channel));
         }
+        parts.push(layer.attributes);
     }
-    Ok((width, height, planes))
+    Ok(Decoded { width, height, image: image.attributes, parts, channels })
+}
+
+/// Reads every channel of every part as f32: `(width, height, [(full name, plane)])`.
+pub(super) fn read_planes(
+    bytes: &[u8],
+    limits: &Limits,
+) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
+    let decoded = decode(bytes, limits)?;
+    let planes = decoded.channels.into_iter().map(|(_, c)| (c.name.to_string(), to_plane(c.sample_data))).collect();
+    Ok((decoded.width, decoded.height, planes))
+}
+
+/// Samples as f32 (exact for f16 and f32; u32 above 2^24 are rounded). Moves f32 samples.
+pub(super) fn to_plane(samples: FlatSamples) -> Plane {
+    match samples {
+        FlatSamples::F16(v) => v.into_iter().map(f16::to_f32).collect(),
+        FlatSamples::F32(v) => v,
+        FlatSamples::U32(v) => v.into_iter().map(|x| x as f32).collect(),
+    }
+}
+
+/// Samples as a new f32 plane, leaving them as they are (see [`to_plane`]).
+pub(super) fn copy_plane(samples: &FlatSamples) -> Plane {
+    match samples {
+        FlatSamples::F16(v) => v.iter().map(|x| x.to_f32()).collect(),
+        FlatSamples::F32(v) => v.clone(),
+        FlatSamples::U32(v) => v.iter().map(|&x| x as f32).collect(),
+    }
 }
 
 /// Runs the EXR decoder, a dependency, so that a panic in it on a malformed file (one was
@@ -235,6 +287,23 @@ pub fn write_planes<'a>(
         .collect();
     let image =
         Image::from_layer(Layer::new((width, height), LayerAttributes::default(), encoding, AnyChannels::sort(list)));
+    let mut out = Cursor::new(Vec::new());
+    image.write().to_buffered(&mut out)?;
+    Ok(out.into_inner())
+}
+
+/// Encodes `channels` as a single-part EXR (ZIP, lossless) with `header`: its data window
+/// (origin from the header, `width`×`height`), display window, pixel aspect and attributes.
+/// The channels are moved into the encoder, not copied.
+pub(super) fn encode(
+    width: usize,
+    height: usize,
+    header: FrameHeader,
+    channels: Vec<AnyChannel<FlatSamples>>,
+) -> exr::error::Result<Vec<u8>> {
+    let FrameHeader { image, layer } = header;
+    let channels = AnyChannels::sort(smallvec::SmallVec::from_vec(channels));
+    let image = Image::new(image, Layer::new((width, height), layer, Encoding::SMALL_LOSSLESS, channels));
     let mut out = Cursor::new(Vec::new());
     image.write().to_buffered(&mut out)?;
     Ok(out.into_inner())

@@ -2,10 +2,12 @@
 //!
 //! See `docs/frame-layout.md` for the channel names and what each buffer means.
 
+mod carry;
 mod exr_io;
 pub mod layout;
 pub mod renderers;
 
+pub use carry::{Carried, Carry, FrameHeader, ALPHA};
 pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, SampleType};
 pub use layout::{Buffer, BUFFER_COUNT};
 
@@ -39,6 +41,11 @@ pub enum FrameError {
     MissingChannels { missing: Vec<String>, available: Vec<String>, hint: Option<String> },
     #[error("channel {channel} is {}x{} but {reference} is {}x{}", size.0, size.1, expected.0, expected.1)]
     SizeMismatch { channel: String, size: (usize, usize), reference: String, expected: (usize, usize) },
+    #[error(
+        "part {part} starts at ({}, {}) but part {reference} at ({}, {}); the parts of a frame must share one data window",
+        origin.0, origin.1, expected.0, expected.1
+    )]
+    PartOrigins { part: String, origin: (i32, i32), reference: String, expected: (i32, i32) },
     #[error("channel {0} appears more than once")]
     DuplicateChannel(String),
     #[error("channel {0} is subsampled; only full-resolution channels are supported")]
@@ -194,6 +201,11 @@ impl Frame {
         self.buffers[buffer as usize] = None;
     }
 
+    /// Takes a buffer's planes out of the frame, which then lacks it.
+    pub fn take(&mut self, buffer: Buffer) -> Option<Vec<Plane>> {
+        self.buffers[buffer as usize].take()
+    }
+
     /// The frame's total radiance: `R,G,B` if present, else diffuse + specular.
     pub fn color(&self) -> [Plane; 3] {
         if self.has(Buffer::Color) {
@@ -214,10 +226,26 @@ impl Frame {
 
     /// Reads and validates a frame from the bytes of an EXR file.
     pub fn from_exr_bytes(bytes: &[u8], limits: &Limits) -> Result<Frame, FrameError> {
-        let (w, h, planes) = exr_io::read_planes(bytes, limits)?;
+        Frame::from_exr_bytes_carrying(bytes, limits, &Carry::default()).map(|(frame, _)| frame)
+    }
+
+    /// Reads and validates a frame, and what its output is to carry of it: the header
+    /// (windows, pixel aspect, attributes), the beauty's alpha and the channels `carry`
+    /// asks for. Only the channels the frame reads are converted to f32.
+    pub fn from_exr_bytes_carrying(
+        bytes: &[u8],
+        limits: &Limits,
+        carry: &Carry,
+    ) -> Result<(Frame, Carried), FrameError> {
+        let decoded = exr_io::decode(bytes, limits)?;
+        let (w, h) = (decoded.width, decoded.height);
+        // Checked on every name: the error lists what the file has.
+        let names: Vec<String> = decoded.channels.iter().map(|(_, c)| c.name.to_string()).collect();
+        check_required(&names.iter().map(String::as_str).collect::<Vec<_>>(), layout::REQUIRED)?;
+        let (planes, carried) = carry::split(decoded, carry);
         let mut frame = Frame::from_planes(w, h, planes, layout::REQUIRED)?;
         frame.fill_missing_variances();
-        Ok(frame)
+        Ok((frame, carried))
     }
 
     /// Reads a reference frame: only a color is needed (`R,G,B`, or diffuse and specular).

@@ -30,6 +30,47 @@ pub enum Recipe {
     Zero,
 }
 
+impl Recipe {
+    /// The file's channels the recipe reads.
+    pub fn sources(&self) -> Vec<&str> {
+        match self {
+            Recipe::Copy(src) | Recipe::Depth(src) => vec![src.as_str()],
+            Recipe::Product { terms, factor } => terms.iter().chain([factor]).map(String::as_str).collect(),
+            Recipe::Remainder { total, terms, factor } => {
+                [total].into_iter().chain(terms).chain([factor]).map(String::as_str).collect()
+            }
+            Recipe::Zero => Vec::new(),
+        }
+    }
+}
+
+/// The channels of a file's beauty: the total radiance the denoised `R,G,B` replace, and
+/// its alpha.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Beauty<'a> {
+    /// `R,G,B`, else Cycles' `<view layer>.Combined.{R,G,B}`; empty when the file has
+    /// neither (diffuse and specular only).
+    pub color: Vec<&'a str>,
+    /// `A`, else the `A` of Cycles' Combined pass.
+    pub alpha: Option<&'a str>,
+}
+
+/// The beauty of a file with channels `names`.
+pub fn beauty<'a>(names: &[&'a str]) -> Beauty<'a> {
+    let has = |n: &str| names.contains(&n);
+    let passes = passes(names);
+    let combined = passes.get("Combined");
+    let color = if ["R", "G", "B"].iter().all(|n| has(n)) {
+        vec!["R", "G", "B"]
+    } else {
+        combined
+            .and_then(|c| ["R", "G", "B"].iter().map(|ch| c.get(ch).copied()).collect::<Option<Vec<_>>>())
+            .unwrap_or_default()
+    };
+    let alpha = names.iter().copied().find(|n| *n == "A").or_else(|| combined.and_then(|c| c.get("A").copied()));
+    Beauty { color, alpha }
+}
+
 /// Depths at or above this mean "no hit".
 pub const NO_HIT_DEPTH: f32 = 1e9;
 
@@ -234,6 +275,25 @@ mod tests {
         // specular.R = Combined.R − diffuse.R
         assert_eq!(get("specular.R"), 1.0 - 143.0);
         assert_eq!(get("diffuse.B"), (7.0 + 10.0) * 13.0);
+    }
+
+    #[test]
+    fn the_beauty_is_rgb_else_cycles_combined() {
+        let b = beauty(&["G", "A", "R", "B", "diffuse.R"]);
+        assert_eq!((b.color, b.alpha), (vec!["R", "G", "B"], Some("A")));
+        let b = beauty(&["VL.Combined.R", "VL.Combined.G", "VL.Combined.B", "VL.Combined.A", "VL.Depth.Z"]);
+        assert_eq!(
+            (b.color, b.alpha),
+            (vec!["VL.Combined.R", "VL.Combined.G", "VL.Combined.B"], Some("VL.Combined.A"))
+        );
+        assert_eq!(beauty(&["diffuse.R", "R", "G"]), Beauty::default());
+    }
+
+    #[test]
+    fn recipes_name_their_sources() {
+        let r = Recipe::Remainder { total: "t".into(), terms: vec!["a".into(), "b".into()], factor: "f".into() };
+        assert_eq!(r.sources(), ["t", "a", "b", "f"]);
+        assert!(Recipe::Zero.sources().is_empty());
     }
 
     #[test]

@@ -93,12 +93,17 @@ impl std::str::FromStr for JobState {
     }
 }
 
-/// Extra layers of the result besides `R,G,B`.
+/// Extra layers of the result besides `R,G,B` (and the beauty's alpha, always carried).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Layer {
+    /// The denoised diffuse component, `diffuse.R,G,B`.
     Diffuse,
+    /// The denoised specular component, `specular.R,G,B`.
     Specular,
+    /// Every other channel of the input (every AOV), unchanged; the denoised layers asked
+    /// for beside it replace the input's channels of the same names.
+    All,
 }
 
 impl Layer {
@@ -106,11 +111,12 @@ impl Layer {
         match self {
             Layer::Diffuse => "diffuse",
             Layer::Specular => "specular",
+            Layer::All => "all",
         }
     }
 
     pub fn parse(s: &str) -> Option<Layer> {
-        [Layer::Diffuse, Layer::Specular].into_iter().find(|v| v.name() == s)
+        [Layer::Diffuse, Layer::Specular, Layer::All].into_iter().find(|v| v.name() == s)
     }
 }
 
@@ -118,7 +124,7 @@ impl std::str::FromStr for Layer {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Layer, String> {
-        Layer::parse(s).ok_or_else(|| format!("unknown layer `{s}` (expected diffuse or specular)"))
+        Layer::parse(s).ok_or_else(|| format!("unknown layer `{s}` (expected diffuse, specular or all)"))
     }
 }
 
