@@ -630,3 +630,49 @@ async fn a_cycles_frame_without_the_diffuse_passes_is_denoised_with_a_warning() 
     assert_eq!(d.wait_state(&id, "succeeded").await["warnings"], serde_json::json!([]));
     d.stop().await;
 }
+
+/// An Arnold-named frame (beauty R,G,B,A, diffuse_direct/indirect, denoise_albedo, N, Z) is
+/// denoised through the Arnold preset, as its canonical twin is; one without its depth AOV
+/// is refused naming the AOVs Arnold must write.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_arnold_named_frame_is_denoised_through_its_preset() {
+    let (w, h) = (40, 24);
+    let canonical: Vec<(String, Vec<f32>)> = common::named_planes(w, h, false)
+        .into_iter()
+        .filter(|(n, _)| ["diffuse.", "specular.", "albedo.", "normal.", "depth."].iter().any(|p| n.starts_with(p)))
+        .collect();
+    let get = |n: &str| canonical.iter().find(|(k, _)| k == n).unwrap().1.clone();
+    let mut arnold: Vec<(String, Vec<f32>)> = Vec::new();
+    for (c, axis) in ["R", "G", "B"].into_iter().zip(["X", "Y", "Z"]) {
+        let (d, s) = (get(&format!("diffuse.{c}")), get(&format!("specular.{c}")));
+        arnold.push((c.into(), d.iter().zip(&s).map(|(a, b)| a + b).collect()));
+        arnold.push((format!("diffuse_direct.{c}"), d.iter().map(|v| 0.75 * v).collect()));
+        arnold.push((format!("diffuse_indirect.{c}"), d.iter().map(|v| 0.25 * v).collect()));
+        arnold.push((format!("denoise_albedo.{c}"), get(&format!("albedo.{c}"))));
+        arnold.push((format!("N.{axis}"), get(&format!("normal.{c}"))));
+    }
+    arnold.push(("A".into(), vec![1.0; w * h]));
+    arnold.push(("Z".into(), get("depth.Z")));
+    let exr = |planes: &[(String, Vec<f32>)]| common::exr_single(w, h, planes, common::Sample::F32);
+
+    let dir = tempfile::tempdir().unwrap();
+    let d = start(dir.path(), &[]).await;
+    d.ready().await;
+    let twin = d.submit_ok(&exr(&canonical), "").await;
+    let id = d.submit_ok(&exr(&arnold), "").await;
+    let job = d.wait_state(&id, "succeeded").await;
+    assert_eq!(job["variant"], "nocov", "{job}");
+    d.wait_state(&twin, "succeeded").await;
+    let read = |bytes: Vec<u8>| Frame::reference_from_exr_bytes(&bytes, &Default::default()).unwrap();
+    let (a, b) = (read(d.result(&id).await.1), read(d.result(&twin).await.1));
+    for c in 0..3 {
+        let diff = max_rel_diff(&a.color()[c], &b.color()[c]);
+        assert!(diff < 1e-3, "channel {c}: {diff}");
+    }
+    let without_depth: Vec<_> = arnold.iter().filter(|(n, _)| n != "Z").cloned().collect();
+    let (status, err) = d.submit(&exr(&without_depth), "", &[]).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+    let message = err["error"]["message"].as_str().unwrap();
+    assert!(message.contains("this looks like Arnold output") && message.contains("depth: Z"), "{message}");
+    d.stop().await;
+}

@@ -5,6 +5,7 @@
 mod carry;
 mod exr_io;
 pub mod layout;
+pub mod presets;
 pub mod renderers;
 
 pub use carry::{Carried, Carry, FrameHeader, ALPHA};

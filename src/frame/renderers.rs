@@ -28,6 +28,8 @@ pub enum Recipe {
     Remainder { total: String, terms: Vec<String>, factor: String },
     /// A channel of zeros.
     Zero,
+    /// `Σ sign × channel` (a renderer preset's sums and remainders, [`super::presets`]).
+    Signed(Vec<(f32, String)>),
 }
 
 impl Recipe {
@@ -40,6 +42,7 @@ impl Recipe {
                 [total].into_iter().chain(terms).chain([factor]).map(String::as_str).collect()
             }
             Recipe::Zero => Vec::new(),
+            Recipe::Signed(terms) => terms.iter().map(|(_, n)| n.as_str()).collect(),
         }
     }
 }
@@ -156,7 +159,34 @@ pub fn recipes(names: &[&str]) -> Vec<(String, Recipe)> {
             add("depth", &["Z"], d.into_iter().map(Recipe::Depth).collect());
         }
     }
+    // Other renderers' AOV names, for what is still missing (not for Cycles frames).
+    let required = super::layout::REQUIRED;
+    let derived = |b: super::Buffer, out: &[(String, Recipe)]| {
+        has(b) || out.iter().any(|(n, _)| n.split('.').next() == Some(b.name()))
+    };
+    if !passes.contains_key("Combined") && required.iter().any(|b| !derived(*b, &out)) {
+        if let Some((_, preset)) = super::presets::recipes(names) {
+            let keep: Vec<(String, Recipe)> = preset
+                .into_iter()
+                .filter(|(n, _)| {
+                    let base = n.split('.').next().unwrap_or("");
+                    !super::Buffer::ALL.iter().any(|b| b.name() == base && derived(*b, &out))
+                })
+                .collect();
+            out.extend(keep);
+        }
+    }
     out
+}
+
+/// The renderer preset that maps `names`, if one does (for the log and the job).
+pub fn preset_of(names: &[&str]) -> Option<&'static str> {
+    let resolved = super::layout::resolve(names);
+    let canonical = super::layout::REQUIRED.iter().all(|b| resolved[*b as usize].is_some());
+    if canonical || passes(names).contains_key("Combined") {
+        return None;
+    }
+    super::presets::recipes(names).map(|(r, _)| r)
 }
 
 /// The Cycles fallback: all light taken as diffuse.
@@ -198,7 +228,7 @@ pub fn hint(names: &[&str]) -> Option<String> {
                 .into(),
         );
     }
-    None
+    super::presets::hint(names)
 }
 
 /// `names` plus the canonical names [`recipes`] can derive.
@@ -238,6 +268,15 @@ pub fn derive(planes: &mut NamedPlanes, len: usize) {
                     get(total).iter().zip(&d).zip(get(factor)).map(|((t, s), f)| t - s * f).collect()
                 }
                 Recipe::Zero => vec![0f32; len],
+                Recipe::Signed(terms) => {
+                    let mut s = vec![0f32; len];
+                    for (sign, t) in terms {
+                        for (a, b) in s.iter_mut().zip(get(t)) {
+                            *a += sign * b;
+                        }
+                    }
+                    s
+                }
             };
             (name.clone(), plane)
         })
