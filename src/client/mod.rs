@@ -265,6 +265,11 @@ pub async fn grpc_connect(host_port: &str, token: Option<&str>) -> Result<GrpcCl
         .connect()
         .await
         .with_context(|| format!("cannot connect to grpc://{host_port}"))?;
+    grpc_client(channel, token)
+}
+
+/// A client on `channel` with the bearer token attached and the daemon's message limits.
+pub fn grpc_client(channel: tonic::transport::Channel, token: Option<&str>) -> Result<GrpcClient> {
     let token = token.map(|t| format!("Bearer {t}").parse()).transpose().context("the token is not valid ASCII")?;
     Ok(pb::denoiser_client::DenoiserClient::with_interceptor(channel, TokenInterceptor(token))
         .max_decoding_message_size(crate::grpc::MAX_MESSAGE_BYTES)

@@ -23,7 +23,7 @@ use serde_json::{json, Value};
 
 use super::{
     api_error, body_bytes, body_file, fetch_grpc, grpc_error, job_from_pb, multipart_body, read_json, save_body,
-    upload_stream, GrpcClient, HttpClient, SseReader, TokenInterceptor,
+    upload_stream, grpc_client, GrpcClient, HttpClient, SseReader,
 };
 use crate::config::Secret;
 use crate::engine::Variant;
@@ -470,10 +470,7 @@ fn grpc_lazy(host_port: &str, token: Option<&str>) -> Result<GrpcClient> {
     let channel = tonic::transport::Endpoint::from_shared(format!("http://{host_port}"))
         .with_context(|| format!("grpc://{host_port} is not a valid address"))?
         .connect_lazy();
-    let token = token.map(|t| format!("Bearer {t}").parse()).transpose().context("the token is not valid ASCII")?;
-    Ok(pb::denoiser_client::DenoiserClient::with_interceptor(channel, TokenInterceptor(token))
-        .max_decoding_message_size(crate::grpc::MAX_MESSAGE_BYTES)
-        .max_encoding_message_size(crate::grpc::MAX_MESSAGE_BYTES))
+    grpc_client(channel, token)
 }
 
 fn backoff(attempt: u32) -> Duration {
