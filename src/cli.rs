@@ -11,7 +11,7 @@ use serde_json::json;
 
 use crate::config::FireflyArgs;
 use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
-use crate::frame::{Buffer, Frame, Limits};
+use crate::frame::{Buffer, ChannelMaps, Frame, Limits};
 use crate::jobs::Layer;
 use crate::pipeline::{self, Failure, Input};
 use crate::quality::Metrics;
@@ -98,6 +98,12 @@ pub struct RunArgs {
     pub variant: VariantArg,
     #[command(flatten)]
     pub fireflies: FireflyArgs,
+    /// How the renderer's AOV names are read: `auto` (canonical names, Blender Cycles'
+    /// passes, then every shipped preset), a preset's name (`arnold`, `renderman`,
+    /// `karma`, `vray`, `redshift`), or the frame's own map as `key=AOVs` pairs separated
+    /// by `;` (docs/frame-layout.md).
+    #[arg(long, default_value = "auto")]
+    pub channel_map: String,
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_library: Option<PathBuf>,
@@ -148,6 +154,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     let total = Instant::now();
     let layers =
         args.layers.iter().map(|l| l.parse::<Layer>().map_err(anyhow::Error::msg)).collect::<Result<Vec<_>>>()?;
+    let channel_maps = ChannelMaps::default().choose(&args.channel_map).map_err(anyhow::Error::msg)?;
     let mut config = EngineConfig::new(&args.models);
     config.tile = args.tile;
     config.tile_v2 = args.tile_v2;
@@ -168,6 +175,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         fireflies,
         layers: &layers,
         limits: args.frame.limits(),
+        channel_maps,
     };
     let out = pipeline::run(&mut engine, &request, &mut |p| {
         tracing::debug!(tile = p.tiles_done, of = p.tiles_total, "tile done");

@@ -14,7 +14,8 @@ use anyhow::{bail, Context};
 use clap::{Args, Command};
 
 use crate::engine::{Fireflies, FireflyMode};
-use crate::frame::Limits;
+use crate::frame::presets::{ChannelMap, ChannelMapSpec};
+use crate::frame::{ChannelMaps, Limits};
 use crate::telemetry::LogFormat;
 
 fn parse_duration(s: &str) -> Result<Duration, String> {
@@ -241,6 +242,11 @@ pub struct ServeArgs {
     #[arg(long, env = "MCDENOISE_SHUTDOWN_TIMEOUT", default_value = "30s", value_parser = parse_duration, help_heading = "Operations")]
     pub shutdown_timeout: Duration,
 
+    /// Renderers' AOV names, from the config file's `[channel_maps.<name>]` tables
+    /// (docs/frame-layout.md); tried before the shipped presets.
+    #[arg(skip)]
+    pub channel_maps: Vec<ChannelMap>,
+
     // --- Testing hooks (hidden) ------------------------------------------------------
     /// Sleeps this long after every tile (to make jobs slow in tests).
     #[arg(long, env = "MCDENOISE_DEBUG_TILE_DELAY", value_parser = parse_duration, default_value = "0s", hide = true)]
@@ -280,6 +286,11 @@ impl ServeArgs {
 
     pub fn limits(&self) -> Limits {
         Limits { max_pixels: self.max_pixels }
+    }
+
+    /// The channel maps frames are read with: the configured ones, then the shipped presets.
+    pub fn channel_maps(&self) -> ChannelMaps {
+        ChannelMaps::configured(self.channel_maps.clone())
     }
 
     /// Checks values that clap cannot.
@@ -352,17 +363,40 @@ impl ServeArgs {
             } else {
                 format!("{} submit token(s), {} operator token(s)", self.auth_tokens.len(), self.operator_tokens.len())
             },
+            "channel_maps": self.channel_maps().names(),
             "log_format": self.log_format,
             "shutdown_timeout": humantime::format_duration(self.shutdown_timeout).to_string(),
         })
     }
 }
 
+/// The `[channel_maps.<name>]` tables of a config file; the message names the file and
+/// the map.
+fn channel_maps_of(value: toml::Value, path: &Path) -> anyhow::Result<Vec<ChannelMap>> {
+    let toml::Value::Table(maps) = value else {
+        bail!("config file {}, key channel_maps: a table of maps ([channel_maps.<name>])", path.display());
+    };
+    maps.into_iter()
+        .map(|(name, spec)| {
+            let map = spec
+                .try_into()
+                .map_err(|e: toml::de::Error| e.message().trim().to_string())
+                .and_then(|spec: ChannelMapSpec| ChannelMap::new(&name, spec));
+            map.map_err(|e| anyhow::anyhow!("config file {}, channel_maps.{name}: {e}", path.display()))
+        })
+        .collect()
+}
+
 /// Reads a TOML config file and sets its values as the defaults of `cmd`'s arguments (so
-/// flags and environment variables still win). `cmd` is the `serve` command.
-pub fn apply_config_file(mut cmd: Command, path: &Path) -> anyhow::Result<Command> {
+/// flags and environment variables still win). `cmd` is the `serve` command. Returns the
+/// command and the file's channel maps.
+pub fn apply_config_file(mut cmd: Command, path: &Path) -> anyhow::Result<(Command, Vec<ChannelMap>)> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read config file {}", path.display()))?;
-    let table: toml::Table = text.parse().with_context(|| format!("{}: not valid TOML", path.display()))?;
+    let mut table: toml::Table = text.parse().with_context(|| format!("{}: not valid TOML", path.display()))?;
+    let maps = match table.remove("channel_maps").or_else(|| table.remove("channel-maps")) {
+        Some(value) => channel_maps_of(value, path)?,
+        None => Vec::new(),
+    };
     let ids: Vec<String> = cmd.get_arguments().map(|a| a.get_id().to_string()).collect();
     let mut unknown = Vec::new();
     for (key, value) in table {
@@ -398,12 +432,12 @@ pub fn apply_config_file(mut cmd: Command, path: &Path) -> anyhow::Result<Comman
     }
     if !unknown.is_empty() {
         bail!(
-            "{}: unknown keys: {} (keys are the long flag names of `mcdenoise serve`)",
+            "{}: unknown keys: {} (keys are the long flag names of `mcdenoise serve`, and channel_maps)",
             path.display(),
             unknown.join(", ")
         );
     }
-    Ok(cmd)
+    Ok((cmd, maps))
 }
 
 fn scalar(v: &toml::Value) -> anyhow::Result<String> {
@@ -429,9 +463,9 @@ where
     let args = match &first.config {
         None => first,
         Some(path) => {
-            let cmd = apply_config_file(ServeArgs::command(), path)?;
+            let (cmd, maps) = apply_config_file(ServeArgs::command(), path)?;
             let matches = cmd.try_get_matches_from(&argv)?;
-            ServeArgs::from_arg_matches(&matches)?
+            ServeArgs { channel_maps: maps, ..ServeArgs::from_arg_matches(&matches)? }
         }
     };
     args.validate()?;
@@ -474,9 +508,13 @@ mod tests {
         let a = parse_serve_args(["serve", "--config", path.to_str().unwrap()]).unwrap();
         let d = parse_serve_args(["serve"]).unwrap();
         assert_eq!((a.http, a.grpc, a.queue_capacity, a.result_ttl), (d.http, d.grpc, d.queue_capacity, d.result_ttl));
-        assert_eq!((a.tile, a.tile_v2, a.max_pixels, a.max_body_bytes), (d.tile, d.tile_v2, d.max_pixels, d.max_body_bytes));
+        assert_eq!(
+            (a.tile, a.tile_v2, a.max_pixels, a.max_body_bytes),
+            (d.tile, d.tile_v2, d.max_pixels, d.max_body_bytes)
+        );
         assert_eq!(a.fireflies.settings(), d.fireflies.settings());
         assert_eq!(a.workers, Some(1));
+        assert_eq!(a.channel_maps().names()[..2], ["studio", "arnold"]);
     }
 
     #[test]
@@ -528,6 +566,33 @@ mod tests {
         assert_eq!(a.result_ttl, Duration::from_secs(7200));
         assert_eq!(a.log_format, LogFormat::Json);
         assert!(!format!("{a:?}").contains("\"a\""), "tokens must not be printed");
+    }
+
+    #[test]
+    fn channel_maps_come_from_the_config_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("serve.toml");
+        let p = path.to_str().unwrap();
+        std::fs::write(
+            &path,
+            "tile = 64\n[channel_maps.studio]\nrenderer = \"Studio\"\ndiffuse = \"diff\"\nalbedo = \"alb\"\n\
+             normal = \"nrm\"\ndepth = \"z\"\n[channel_maps.arnold]\ndiffuse = \"diffuse\"\nalbedo = \"albedo\"\n\
+             normal = \"N\"\ndepth = \"Z\"\n",
+        )
+        .unwrap();
+        let a = parse_serve_args(["serve", "--config", p]).unwrap();
+        assert_eq!(a.tile, 64);
+        // Configured first; one named like a shipped preset replaces it.
+        assert_eq!(a.channel_maps().names(), ["arnold", "studio", "renderman", "karma", "vray", "redshift"]);
+        for (text, expect) in [
+            ("[channel_maps.studio]\ndiffuse = \"d\"\n", "channel_maps.studio: channel map `studio` has no `albedo`"),
+            ("[channel_maps.studio]\ndifuse = \"d\"\n", "channel_maps.studio: unknown field `difuse`"),
+            ("channel_maps = 3\n", "key channel_maps: a table of maps"),
+        ] {
+            std::fs::write(&path, text).unwrap();
+            let err = format!("{:#}", parse_serve_args(["serve", "--config", p]).unwrap_err());
+            assert!(err.contains(&format!("config file {}", path.display())) && err.contains(expect), "{err}");
+        }
     }
 
     #[test]

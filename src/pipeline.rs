@@ -8,7 +8,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use crate::engine::{Denoised, Denoiser, EngineError, Fireflies, FireflyReport, Progress, Variant};
-use crate::frame::{Carried, Carry, Frame, FrameError, Limits, Sanitized};
+use crate::frame::{Carried, Carry, ChannelMaps, Frame, FrameError, Limits, Sanitized};
 use crate::jobs::{Layer, Timings};
 use crate::quality::Comparison;
 
@@ -24,6 +24,8 @@ pub struct Request<'a> {
     /// Extra layers of the result besides `R,G,B` and the beauty's alpha.
     pub layers: &'a [Layer],
     pub limits: Limits,
+    /// How renderers' AOV names are read.
+    pub channel_maps: ChannelMaps,
 }
 
 /// A denoised frame, encoded: float32 `R,G,B`, the requested layers, and what
@@ -114,10 +116,11 @@ pub fn decode(path: &Path, which: Input, limits: &Limits) -> Result<Frame, Failu
 }
 
 /// Reads and decodes the frame to denoise, with what its output carries.
-fn decode_carrying(path: &Path, limits: &Limits, carry: &Carry) -> Result<(Frame, Carried), Failure> {
+fn decode_carrying(request: &Request<'_>, carry: &Carry) -> Result<(Frame, Carried), Failure> {
     let which = Input::Frame;
-    let bytes = std::fs::read(path).map_err(|error| Failure::Read { which, error })?;
-    Frame::from_exr_bytes_carrying(&bytes, limits, carry).map_err(|error| Failure::Invalid { which, error })
+    let bytes = std::fs::read(request.frame).map_err(|error| Failure::Read { which, error })?;
+    Frame::from_exr_bytes_carrying(&bytes, &request.limits, carry, &request.channel_maps)
+        .map_err(|error| Failure::Invalid { which, error })
 }
 
 /// The header attributes the denoiser adds to its results: the model variant, the networks
@@ -162,7 +165,7 @@ pub fn run(
     let started = Instant::now();
     let t = Instant::now();
     let carry = Carry { all: request.layers.contains(&Layer::All), written: written(request.layers) };
-    let (mut frame, mut carried) = decode_carrying(request.frame, &request.limits, &carry)?;
+    let (mut frame, mut carried) = decode_carrying(request, &carry)?;
     let reference = request.reference.map(|p| decode(p, Input::Reference, &request.limits)).transpose()?;
     if let Some(r) = &reference {
         check_same_size((frame.width, frame.height), (r.width, r.height))?;

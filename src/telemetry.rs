@@ -440,7 +440,13 @@ impl prometheus_client::collector::Collector for ProcessCollector {
             let g = ConstGauge::new(value);
             g.encode(encoder.encode_descriptor(name, help, unit, g.metric_type())?)
         }
-        gauge(&mut encoder, "process_start_time", "Start time since the Unix epoch", Some(&Unit::Seconds), self.start_time)?;
+        gauge(
+            &mut encoder,
+            "process_start_time",
+            "Start time since the Unix epoch",
+            Some(&Unit::Seconds),
+            self.start_time,
+        )?;
         if let Some((cpu, threads, virt, rss)) = proc_stat() {
             let c = ConstCounter::new(cpu);
             c.encode(encoder.encode_descriptor(

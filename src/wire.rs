@@ -39,6 +39,9 @@ pub struct JobView {
     /// The firefly handling asked for; `None` is the daemon's default.
     pub requested_fireflies: Option<FireflyMode>,
     pub requested_firefly_strength: Option<f32>,
+    /// The channel map asked for (a name or an inline map); `None` is `auto`.
+    #[serde(default)]
+    pub channel_map: Option<String>,
     /// The firefly handling the run used, and what it clamped.
     pub fireflies: Option<FireflyCounts>,
     pub attempts: u32,
@@ -112,6 +115,7 @@ impl From<&JobStatus> for JobView {
             variant: r.variant,
             requested_fireflies: r.options.fireflies,
             requested_firefly_strength: r.options.firefly_strength,
+            channel_map: r.options.channel_map.clone(),
             fireflies: r.fireflies,
             attempts: r.attempts,
             cancel_requested: r.cancel_requested,
@@ -149,6 +153,8 @@ pub struct OptionsQuery {
     /// `auto` or `off`.
     pub fireflies: Option<String>,
     pub firefly_strength: Option<f32>,
+    /// `auto`, a channel map's name, or `key=AOVs` pairs separated by `;`.
+    pub channel_map: Option<String>,
 }
 
 impl OptionsQuery {
@@ -179,6 +185,7 @@ impl OptionsQuery {
                 Some(f) => Some(f.parse()?),
             },
             firefly_strength: self.firefly_strength,
+            channel_map: self.channel_map,
         })
     }
 
@@ -198,6 +205,7 @@ impl OptionsQuery {
         push("idempotency_key", self.idempotency_key.clone());
         push("fireflies", self.fireflies.clone());
         push("firefly_strength", self.firefly_strength.map(|s| s.to_string()));
+        push("channel_map", self.channel_map.clone());
         q.join("&")
     }
 }
@@ -213,6 +221,7 @@ impl From<&JobOptions> for OptionsQuery {
             idempotency_key: o.idempotency_key.clone(),
             fireflies: o.fireflies.map(|f| f.name().to_string()),
             firefly_strength: o.firefly_strength,
+            channel_map: o.channel_map.clone(),
         }
     }
 }
@@ -303,6 +312,7 @@ impl TryFrom<pb::JobOptions> for JobOptions {
             deadline_seconds: Some(o.deadline_seconds).filter(|s| *s > 0),
             fireflies,
             firefly_strength: Some(o.firefly_strength).filter(|s| *s != 0.0),
+            channel_map: Some(o.channel_map).filter(|s| !s.is_empty()),
         })
     }
 }
@@ -332,6 +342,7 @@ impl From<&JobOptions> for pb::JobOptions {
             variant_name,
             fireflies: fireflies as i32,
             firefly_strength: o.firefly_strength.unwrap_or(0.0),
+            channel_map: o.channel_map.clone().unwrap_or_default(),
         }
     }
 }
@@ -400,6 +411,7 @@ impl From<&JobStatus> for pb::Job {
                 .map(|e| pb::JobError { code: e.code.name().to_string(), message: e.message.clone() }),
             missing_variances: r.missing_variances.clone(),
             warnings: r.warnings.clone(),
+            channel_map: r.options.channel_map.clone().unwrap_or_default(),
             fireflies: r.fireflies.map(|f| pb::Fireflies {
                 mode: f.mode.name().to_string(),
                 strength: f.strength,
@@ -469,6 +481,7 @@ impl TryFrom<pb::Job> for JobView {
             variant: Some(j.variant).filter(|v| !v.is_empty()).map(|v| v.parse()).transpose()?,
             requested_fireflies: None,
             requested_firefly_strength: None,
+            channel_map: Some(j.channel_map).filter(|m| !m.is_empty()),
             fireflies: match j.fireflies {
                 None => None,
                 Some(f) => Some(FireflyCounts {
@@ -520,6 +533,7 @@ mod tests {
                 deadline_seconds: Some(60),
                 fireflies: Some(FireflyMode::Off),
                 firefly_strength: Some(2.5),
+                channel_map: Some("arnold".into()),
             },
             width: 64,
             height: 32,

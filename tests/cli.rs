@@ -146,7 +146,10 @@ fn a_models_directory_not_found_is_named_as_resolved() {
     let resolved = tmp.path().canonicalize().unwrap().join("nosuch");
     assert!(
         err.contains(&format!("no such directory ({} from the current directory)", resolved.display()))
-            || err.contains(&format!("no such directory ({} from the current directory)", tmp.path().join("nosuch").display())),
+            || err.contains(&format!(
+                "no such directory ({} from the current directory)",
+                tmp.path().join("nosuch").display()
+            )),
         "{err}"
     );
     assert!(err.contains("models/"), "{err}");
@@ -160,7 +163,10 @@ fn a_bad_config_value_is_reported_with_its_file_and_key_once() {
     let res = bin().args(["serve", "--config", config.to_str().unwrap()]).output().unwrap();
     assert_ne!(res.status.code(), Some(0));
     let err = String::from_utf8_lossy(&res.stderr);
-    assert!(err.contains(&format!("config file {}, key queue-capacity: invalid value 'abc'", config.display())), "{err}");
+    assert!(
+        err.contains(&format!("config file {}, key queue-capacity: invalid value 'abc'", config.display())),
+        "{err}"
+    );
     assert_eq!(err.matches("error:").count(), 1, "{err}");
 }
 
@@ -262,3 +268,45 @@ fn run_gives_the_same_pixels_wherever_the_data_window_lies() {
 }
 
 const DIFFUSE: [&str; 3] = ["diffuse.R", "diffuse.G", "diffuse.B"];
+
+#[test]
+fn run_reads_renderer_names_through_the_channel_map_given() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (w, h) = (24, 16);
+    // The canonical frame with every buffer renamed `my_<name>`: no preset knows it.
+    let renamed: Vec<(String, Vec<f32>)> =
+        named_planes(w, h, false).into_iter().map(|(n, p)| (format!("my_{n}"), p)).collect();
+    let input = tmp.path().join("studio.exr");
+    std::fs::write(&input, exr_single(w, h, &renamed, Sample::F32)).unwrap();
+    let (canonical, twin) = (write_frame(tmp.path(), "twin.exr", w, h, false), tmp.path().join("twin.out.exr"));
+    run_ok(&canonical, &twin, &[]);
+    let out = tmp.path().join("studio.out.exr");
+    let mut map =
+        "diffuse=my_diffuse; specular=my_specular; albedo=my_albedo; normal=my_normal; depth=my_depth".to_string();
+    for v in ["diffuse", "specular", "albedo", "normal", "depth"] {
+        map.push_str(&format!("; variances.{v}Variance=my_{v}Variance"));
+    }
+    run_ok(&input, &out, &["--channel-map", &map]);
+    let read =
+        |p: &std::path::Path| Frame::reference_from_exr_bytes(&std::fs::read(p).unwrap(), &Limits::default()).unwrap();
+    let (a, b) = (read(&out), read(&twin));
+    for c in 0..3 {
+        let diff = max_rel_diff(&a.color()[c], &b.color()[c]);
+        assert!(diff < 1e-5, "channel {c}: {diff}");
+    }
+
+    for (map, says) in [
+        ("auto", "missing channels"),
+        ("vray", "channel map `vray` (V-Ray): write the AOVs it lacks"),
+        ("houdini", "unknown channel map `houdini` (expected auto, arnold, renderman, karma, vray, redshift"),
+    ] {
+        let res = bin()
+            .args(["run", input.to_str().unwrap(), "-o", "/dev/null", "--models", tiny_models().to_str().unwrap()])
+            .args(["--channel-map", map])
+            .output()
+            .unwrap();
+        assert_eq!(res.status.code(), Some(1), "{map}");
+        let err = String::from_utf8_lossy(&res.stderr);
+        assert!(err.contains(says), "{map}: {err}");
+    }
+}

@@ -402,7 +402,8 @@ async fn metrics_models_and_openapi_are_served_from_the_start() {
     ] {
         assert!(text.contains(line), "missing `{line}` in:\n{text}");
     }
-    let rss: f64 = text.lines().find_map(|l| l.strip_prefix("process_resident_memory_bytes ")).unwrap().parse().unwrap();
+    let rss: f64 =
+        text.lines().find_map(|l| l.strip_prefix("process_resident_memory_bytes ")).unwrap().parse().unwrap();
     assert!(rss > 1e6, "{rss}");
 
     let (status, info) = d.get_json("/v1/info").await;
@@ -428,7 +429,9 @@ async fn metrics_models_and_openapi_are_served_from_the_start() {
     let (status, api) = d.get_json("/v1/openapi.json").await;
     assert_eq!(status, StatusCode::OK);
     assert_eq!(api["openapi"], "3.1.0");
-    for path in ["/v1/jobs", "/v1/jobs/{id}", "/v1/jobs/{id}/events", "/v1/jobs/{id}/result", "/v1/info", "/readyz", "/metrics"] {
+    for path in
+        ["/v1/jobs", "/v1/jobs/{id}", "/v1/jobs/{id}/events", "/v1/jobs/{id}/result", "/v1/info", "/readyz", "/metrics"]
+    {
         assert!(api["paths"][path].is_object(), "{path}");
     }
 
@@ -674,5 +677,78 @@ async fn an_arnold_named_frame_is_denoised_through_its_preset() {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
     let message = err["error"]["message"].as_str().unwrap();
     assert!(message.contains("this looks like Arnold output") && message.contains("depth: Z"), "{message}");
+    d.stop().await;
+}
+
+/// A studio's own AOV names, mapped by a `[channel_maps.studio]` table of the config file
+/// (tried before the shipped presets, and selectable by name), or by the job's own inline
+/// map; a job that names a map is told what that map lacks, one that names no known map
+/// is told which exist.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn channel_maps_from_the_config_file_and_the_job_read_a_studio_s_names() {
+    let (w, h) = (40, 24);
+    let canonical: Vec<(String, Vec<f32>)> = common::named_planes(w, h, false)
+        .into_iter()
+        .filter(|(n, _)| ["diffuse.", "specular.", "albedo.", "normal.", "depth."].iter().any(|p| n.starts_with(p)))
+        .collect();
+    let get = |n: &str| canonical.iter().find(|(k, _)| k == n).unwrap().1.clone();
+    let mut studio: Vec<(String, Vec<f32>)> = vec![("dist".into(), get("depth.Z"))];
+    for (c, axis) in ["R", "G", "B"].into_iter().zip(["X", "Y", "Z"]) {
+        let (d, s) = (get(&format!("diffuse.{c}")), get(&format!("specular.{c}")));
+        studio.push((c.into(), d.iter().zip(&s).map(|(a, b)| a + b).collect()));
+        studio.push((format!("diff.{c}"), d));
+        studio.push((format!("spec.{c}"), s));
+        studio.push((format!("alb.{c}"), get(&format!("albedo.{c}"))));
+        studio.push((format!("nrm.{axis}"), get(&format!("normal.{c}"))));
+    }
+    let exr = |planes: &[(String, Vec<f32>)]| common::exr_single(w, h, planes, common::Sample::F32);
+
+    let dir = tempfile::tempdir().unwrap();
+    let config = dir.path().join("serve.toml");
+    std::fs::write(
+        &config,
+        "[channel_maps.studio]\nrenderer = \"Studio renderer\"\ndiffuse = \"diff\"\nspecular = \"spec\"\n\
+         albedo = \"alb\"\nnormal = \"nrm\"\ndepth = \"dist\"\n",
+    )
+    .unwrap();
+    let d = start(&dir.path().join("data"), &["--config", config.to_str().unwrap()]).await;
+    d.ready().await;
+    let (_, info) = d.get_json("/v1/info").await;
+    assert_eq!(info["channel_maps"][0], serde_json::json!({ "name": "studio", "renderer": "Studio renderer" }));
+
+    let query =
+        |map: &str| mcdenoise::wire::OptionsQuery { channel_map: Some(map.into()), ..Default::default() }.encode();
+    let twin = d.submit_ok(&exr(&canonical), "").await;
+    let auto = d.submit_ok(&exr(&studio), "").await;
+    let named = d.submit_ok(&exr(&studio), &query("studio")).await;
+    let inline =
+        d.submit_ok(&exr(&studio), &query("diffuse=diff; specular=spec; albedo=alb; normal=nrm; depth=dist")).await;
+    d.wait_state(&twin, "succeeded").await;
+    let read = |bytes: Vec<u8>| Frame::reference_from_exr_bytes(&bytes, &Default::default()).unwrap();
+    let expected = read(d.result(&twin).await.1);
+    for id in [&auto, &named, &inline] {
+        let job = d.wait_state(id, "succeeded").await;
+        let got = read(d.result(id).await.1);
+        for c in 0..3 {
+            let diff = max_rel_diff(&got.color()[c], &expected.color()[c]);
+            assert!(diff < 1e-3, "{job}: channel {c}: {diff}");
+        }
+    }
+    assert_eq!(d.job(&named).await["channel_map"], "studio");
+    assert_eq!(d.job(&auto).await["channel_map"], serde_json::Value::Null);
+
+    // Read through Arnold's map, the frame lacks Arnold's AOVs: named in that map's terms.
+    let (status, err) = d.submit(&exr(&studio), &query("arnold"), &[]).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{err}");
+    let message = err["error"]["message"].as_str().unwrap();
+    assert!(message.contains("channel map `arnold` (Arnold)") && message.contains("depth: Z"), "{message}");
+    // An unknown map is refused before the upload is read, listing the maps there are.
+    let (status, err) = d.submit(&exr(&studio), &query("maya"), &[]).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{err}");
+    let message = err["error"]["message"].as_str().unwrap();
+    assert!(message.contains("unknown channel map `maya`") && message.contains("studio, arnold"), "{message}");
+    let (status, err) = d.submit(&exr(&studio), &query("diffuse=diff;colour=c"), &[]).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{err}");
+    assert!(err["error"]["message"].as_str().unwrap().contains("unknown key `colour`"), "{err}");
     d.stop().await;
 }

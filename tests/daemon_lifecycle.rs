@@ -273,6 +273,9 @@ fn a_second_daemon_on_a_data_directory_in_use_exits_with_a_clear_error() {
     let second = Command::new(env!("CARGO_BIN_EXE_mcdenoise")).args(args(dir.path(), &[])).output().unwrap();
     assert_eq!(second.status.code(), Some(1));
     let err = String::from_utf8_lossy(&second.stderr);
-    assert!(err.contains(&format!("the data directory {} is in use by another mcdenoise daemon", dir.path().display())), "{err}");
+    assert!(
+        err.contains(&format!("the data directory {} is in use by another mcdenoise daemon", dir.path().display())),
+        "{err}"
+    );
     assert!(first.terminate().success());
 }

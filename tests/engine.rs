@@ -38,7 +38,7 @@ fn hand_frame() -> Frame {
         ("depthVariance.Z".into(), p([1.6; 6])),
         ("covarianceVariance.Z".into(), p([0.016; 6])),
     ];
-    Frame::from_planes(3, 2, planes, REQUIRED).unwrap()
+    Frame::from_planes(3, 2, planes, REQUIRED, &Default::default()).unwrap()
 }
 
 fn close(a: f32, b: f32) -> bool {
@@ -283,7 +283,7 @@ fn every_magnitude_in_every_channel_gives_a_finite_output() {
                 } else {
                     planes[index].1[pixel] = value;
                 }
-                let frame = Frame::from_planes(w, h, planes, REQUIRED).unwrap();
+                let frame = Frame::from_planes(w, h, planes, REQUIRED, &Default::default()).unwrap();
                 for variant in [Variant::Full, Variant::Nocov] {
                     for fireflies in [Fireflies::default(), Fireflies::OFF] {
                         if fireflies == Fireflies::OFF && whole_plane {

@@ -4,7 +4,7 @@
 mod common;
 
 use common::*;
-use mcdenoise::frame::{write_exr, Buffer, Frame, FrameError, Limits, OutputLayer};
+use mcdenoise::frame::{write_exr, Buffer, ChannelMaps, Frame, FrameError, Limits, OutputLayer};
 
 const W: usize = 19;
 const H: usize = 13;
@@ -126,7 +126,7 @@ fn frames_over_the_pixel_limit_are_refused_before_decoding() {
 
 #[test]
 fn empty_frames_are_refused() {
-    let err = Frame::from_planes(0, 4, vec![], &[]).unwrap_err();
+    let err = Frame::from_planes(0, 4, vec![], &[], &ChannelMaps::default()).unwrap_err();
     assert_eq!(err, FrameError::Empty { width: 0, height: 4 });
 }
 
@@ -225,7 +225,7 @@ fn cycles_passes_give_the_diffuse_specular_split_and_missing_variances_are_zero(
         info.channels
     };
     let refs: Vec<&str> = names.iter().map(String::as_str).collect();
-    mcdenoise::frame::check_required(&refs, mcdenoise::frame::layout::REQUIRED).unwrap();
+    mcdenoise::frame::check_required(&refs, mcdenoise::frame::layout::REQUIRED, &ChannelMaps::default()).unwrap();
 }
 
 #[test]
@@ -251,7 +251,10 @@ fn cycles_frames_lacking_passes_are_named_in_blender_terms() {
     // Without Denoising Data: refused, saying which option to enable.
     let (bytes, _) = cycles_frame(W, H, |p| !p.starts_with("Denoising") && p != "Depth");
     let err = Frame::from_exr_bytes(&bytes, &Limits::default()).unwrap_err().to_string();
-    assert!(err.contains("albedo.R") && err.contains("enable View Layer Properties > Passes > Data > Denoising Data"), "{err}");
+    assert!(
+        err.contains("albedo.R") && err.contains("enable View Layer Properties > Passes > Data > Denoising Data"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -277,7 +280,8 @@ fn carry(all: bool) -> Carry {
 
 /// Decodes `bytes` carrying `carry`, and encodes the result with zeros for `R,G,B`.
 fn round_trip(bytes: &[u8], carry: &Carry) -> (Vec<u8>, Vec<String>) {
-    let (frame, carried) = Frame::from_exr_bytes_carrying(bytes, &Limits::default(), carry).unwrap();
+    let (frame, carried) =
+        Frame::from_exr_bytes_carrying(bytes, &Limits::default(), carry, &ChannelMaps::default()).unwrap();
     let names = carried.names();
     let n = frame.pixels();
     let denoised = ["R", "G", "B"].map(|c| (c.to_string(), vec![0.0; n])).to_vec();
@@ -360,14 +364,16 @@ fn without_all_only_the_alpha_is_carried_and_the_frame_reads_the_same() {
     channels.push(AnyChannel::new("A", FlatSamples::F32(vec![0.5; w * h])));
     channels.push(AnyChannel::new("crypto00.R", FlatSamples::F32(vec![1.0; w * h])));
     let bytes = exr_placed(w, h, &Placement::plain(w, h), channels);
-    let (frame, carried) = Frame::from_exr_bytes_carrying(&bytes, &Limits::default(), &carry(false)).unwrap();
+    let (frame, carried) =
+        Frame::from_exr_bytes_carrying(&bytes, &Limits::default(), &carry(false), &ChannelMaps::default()).unwrap();
     assert_eq!(carried.names(), [ALPHA]);
     assert_eq!(carried.header.origin(), (0, 0));
     assert_same_as_planes(&frame, &planes, 0.0);
     // Denoised layers replace the input's channels of their names under `all`.
     let with_diffuse =
         Carry { all: true, written: ["R", "G", "B", "diffuse.R", "diffuse.G", "diffuse.B"].map(String::from).to_vec() };
-    let (_, carried) = Frame::from_exr_bytes_carrying(&bytes, &Limits::default(), &with_diffuse).unwrap();
+    let (_, carried) =
+        Frame::from_exr_bytes_carrying(&bytes, &Limits::default(), &with_diffuse, &ChannelMaps::default()).unwrap();
     let names = carried.names();
     assert!(!names.iter().any(|n| n.starts_with("diffuse.")) && names.contains(&"specular.R".to_string()));
 }

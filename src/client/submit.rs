@@ -22,8 +22,8 @@ use hyper::{Method, StatusCode};
 use serde_json::{json, Value};
 
 use super::{
-    api_error, body_bytes, body_file, fetch_grpc, grpc_error, job_from_pb, multipart_body, read_json, save_body,
-    upload_stream, grpc_client, GrpcClient, HttpClient, SseReader,
+    api_error, body_bytes, body_file, fetch_grpc, grpc_client, grpc_error, job_from_pb, multipart_body, read_json,
+    save_body, upload_stream, GrpcClient, HttpClient, SseReader,
 };
 use crate::config::Secret;
 use crate::engine::Variant;
@@ -87,6 +87,11 @@ pub struct SubmitArgs {
     /// Strength of the firefly handling, 0.1 to 10 (default: the daemon's).
     #[arg(long)]
     pub firefly_strength: Option<f32>,
+    /// How the renderer's AOV names are read: auto, a channel map's name (arnold,
+    /// renderman, karma, vray, redshift, or one of the daemon's config), or `key=AOVs`
+    /// pairs separated by `;` (docs/frame-layout.md).
+    #[arg(long)]
+    pub channel_map: Option<String>,
     /// Bearer token, when the daemon requires one.
     #[arg(long, env = "MCDENOISE_TOKEN", hide_env_values = true)]
     pub token: Option<Secret>,
@@ -108,6 +113,7 @@ impl SubmitArgs {
             deadline_seconds: self.deadline_seconds,
             fireflies: self.fireflies.as_deref().map(str::parse).transpose().map_err(anyhow::Error::msg)?,
             firefly_strength: self.firefly_strength,
+            channel_map: self.channel_map.clone(),
         })
     }
 }
@@ -142,7 +148,9 @@ impl FromStr for FrameSpec {
             if last < first {
                 return Err(format!("{part:?} in --frames ends before it starts"));
             }
-            if (last - first) / step >= MAX_FRAMES as u64 || frames.len() + ((last - first) / step) as usize >= MAX_FRAMES {
+            if (last - first) / step >= MAX_FRAMES as u64
+                || frames.len() + ((last - first) / step) as usize >= MAX_FRAMES
+            {
                 return Err(format!("--frames {s:?} names more than {MAX_FRAMES} frames"));
             }
             frames.extend((first..=last).step_by(step as usize));
@@ -293,10 +301,7 @@ impl Submitter {
     async fn retry(&self, who: &str, reason: String, wait: Duration, deadline: Instant) -> Result<()> {
         let wait = wait.min(MAX_RETRY_WAIT);
         if Instant::now() + wait > deadline {
-            bail!(
-                "{reason} (gave up after --retry-timeout {})",
-                humantime::format_duration(self.retry_timeout)
-            );
+            bail!("{reason} (gave up after --retry-timeout {})", humantime::format_duration(self.retry_timeout));
         }
         if !self.quiet {
             eprintln!("{who}{reason}; retrying in {:.1} s", wait.as_secs_f64());

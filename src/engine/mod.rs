@@ -570,6 +570,7 @@ pub fn synthetic_planes(w: usize, h: usize, with_covariance: bool) -> Vec<(Strin
 
 /// A smooth synthetic frame with every channel, for warm-up, tests and benchmarks.
 pub fn synthetic_frame(w: usize, h: usize, with_covariance: bool) -> Frame {
-    Frame::from_planes(w, h, synthetic_planes(w, h, with_covariance), crate::frame::layout::REQUIRED)
+    let maps = crate::frame::ChannelMaps::default();
+    Frame::from_planes(w, h, synthetic_planes(w, h, with_covariance), crate::frame::layout::REQUIRED, &maps)
         .expect("synthetic frame is complete")
 }

@@ -19,7 +19,7 @@ use std::collections::{HashMap, HashSet};
 use exr::prelude::*;
 
 use super::exr_io::{copy_plane, to_plane, Decoded};
-use super::{layout, renderers, Buffer, Frame, NamedPlanes, Plane, SampleType};
+use super::{layout, renderers, Buffer, ChannelMaps, Frame, NamedPlanes, Plane, SampleType};
 
 /// The header of an input that its output keeps.
 #[derive(Clone, Debug, PartialEq)]
@@ -152,14 +152,14 @@ fn exact_type(samples: &FlatSamples) -> Option<SampleType> {
 /// Splits a decoded file into the f32 planes a frame is built from (only the channels the
 /// frame reads: its buffers and what Cycles buffers are derived from) and what the output
 /// carries.
-pub(super) fn split(decoded: Decoded, carry: &Carry) -> (NamedPlanes, Carried) {
+pub(super) fn split(decoded: Decoded, carry: &Carry, maps: &ChannelMaps) -> (NamedPlanes, Carried) {
     let Decoded { image, mut parts, channels, .. } = decoded;
     let names: Vec<String> = channels.iter().map(|(_, c)| c.name.to_string()).collect();
     let refs: Vec<&str> = names.iter().map(String::as_str).collect();
 
     // The frame's buffers, resolved as `Frame::from_planes` resolves them: each input
     // channel's (buffer, component), and the channels derived buffers are made from.
-    let all = renderers::with_derived(&refs);
+    let all = renderers::with_derived(&refs, maps);
     let all: Vec<&str> = all.iter().map(String::as_str).collect();
     let mut role: Vec<Option<(Buffer, usize)>> = vec![None; refs.len()];
     for (buffer, indices) in Buffer::ALL.into_iter().zip(layout::resolve(&all)) {
@@ -169,7 +169,7 @@ pub(super) fn split(decoded: Decoded, carry: &Carry) -> (NamedPlanes, Carried) {
             }
         }
     }
-    let recipes = renderers::recipes(&refs);
+    let recipes = renderers::recipes(&refs, maps);
     let sources: HashSet<&str> = recipes.iter().flat_map(|(_, r)| r.sources()).collect();
 
     let beauty = renderers::beauty(&refs);

@@ -11,6 +11,7 @@ pub mod renderers;
 pub use carry::{Carried, Carry, FrameHeader, ALPHA};
 pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, SampleType};
 pub use layout::{Buffer, BUFFER_COUNT};
+pub use presets::ChannelMaps;
 
 use serde::Serialize;
 
@@ -110,14 +111,15 @@ impl Frame {
         height: usize,
         mut planes: NamedPlanes,
         required: &[Buffer],
+        maps: &ChannelMaps,
     ) -> Result<Frame, FrameError> {
         if width == 0 || height == 0 {
             return Err(FrameError::Empty { width, height });
         }
-        let warnings = renderers::warnings(&planes.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>());
-        renderers::derive(&mut planes, width * height);
+        let warnings = renderers::warnings(&planes.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>(), maps);
+        renderers::derive(&mut planes, width * height, maps);
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
-        check_required(&names, required)?;
+        check_required(&names, required, maps)?;
         let resolved = layout::resolve(&names);
         let mut buffers: [Option<Vec<Plane>>; BUFFER_COUNT] = Default::default();
         let mut sanitized = Sanitized::default();
@@ -225,26 +227,30 @@ impl Frame {
         })
     }
 
-    /// Reads and validates a frame from the bytes of an EXR file.
+    /// Reads and validates a frame from the bytes of an EXR file (renderers' AOV names
+    /// through the shipped channel maps).
     pub fn from_exr_bytes(bytes: &[u8], limits: &Limits) -> Result<Frame, FrameError> {
-        Frame::from_exr_bytes_carrying(bytes, limits, &Carry::default()).map(|(frame, _)| frame)
+        Frame::from_exr_bytes_carrying(bytes, limits, &Carry::default(), &ChannelMaps::default())
+            .map(|(frame, _)| frame)
     }
 
     /// Reads and validates a frame, and what its output is to carry of it: the header
     /// (windows, pixel aspect, attributes), the beauty's alpha and the channels `carry`
-    /// asks for. Only the channels the frame reads are converted to f32.
+    /// asks for. Only the channels the frame reads are converted to f32. Renderers' AOV
+    /// names are read through `maps`.
     pub fn from_exr_bytes_carrying(
         bytes: &[u8],
         limits: &Limits,
         carry: &Carry,
+        maps: &ChannelMaps,
     ) -> Result<(Frame, Carried), FrameError> {
         let decoded = exr_io::decode(bytes, limits)?;
         let (w, h) = (decoded.width, decoded.height);
         // Checked on every name: the error lists what the file has.
         let names: Vec<String> = decoded.channels.iter().map(|(_, c)| c.name.to_string()).collect();
-        check_required(&names.iter().map(String::as_str).collect::<Vec<_>>(), layout::REQUIRED)?;
-        let (planes, carried) = carry::split(decoded, carry);
-        let mut frame = Frame::from_planes(w, h, planes, layout::REQUIRED)?;
+        check_required(&names.iter().map(String::as_str).collect::<Vec<_>>(), layout::REQUIRED, maps)?;
+        let (planes, carried) = carry::split(decoded, carry, maps);
+        let mut frame = Frame::from_planes(w, h, planes, layout::REQUIRED, maps)?;
         frame.fill_missing_variances();
         Ok((frame, carried))
     }
@@ -255,14 +261,15 @@ impl Frame {
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
         check_reference(&names)?;
         let required = reference_buffers(&names);
-        Frame::from_planes(w, h, planes, required)
+        Frame::from_planes(w, h, planes, required, &ChannelMaps::default())
     }
 }
 
-/// Checks that channels `names` provide every buffer of `required`; the error lists the
-/// names of what is missing and every name the file has.
-pub fn check_required(names: &[&str], required: &[Buffer]) -> Result<(), FrameError> {
-    let all = renderers::with_derived(names);
+/// Checks that channels `names` provide every buffer of `required` (renderers' AOV names
+/// through `maps`); the error lists the names of what is missing and every name the file
+/// has.
+pub fn check_required(names: &[&str], required: &[Buffer], maps: &ChannelMaps) -> Result<(), FrameError> {
+    let all = renderers::with_derived(names, maps);
     let all: Vec<&str> = all.iter().map(String::as_str).collect();
     let resolved = layout::resolve(&all);
     let missing: Vec<String> =
@@ -272,7 +279,7 @@ pub fn check_required(names: &[&str], required: &[Buffer]) -> Result<(), FrameEr
     }
     let mut available: Vec<String> = names.iter().map(|s| s.to_string()).collect();
     available.sort();
-    Err(FrameError::MissingChannels { missing, available, hint: renderers::hint(names) })
+    Err(FrameError::MissingChannels { missing, available, hint: renderers::hint(names, maps) })
 }
 
 /// The channels `names` lacks for `buffer`: the rest of its most complete spelling (a file
@@ -301,7 +308,7 @@ fn reference_buffers(names: &[&str]) -> &'static [Buffer] {
 
 /// Checks that channels `names` hold a reference color (`R,G,B`, or diffuse and specular).
 pub fn check_reference(names: &[&str]) -> Result<(), FrameError> {
-    check_required(names, reference_buffers(names)).map_err(|e| match e {
+    check_required(names, reference_buffers(names), &ChannelMaps::default()).map_err(|e| match e {
         FrameError::MissingChannels { available, .. } => FrameError::MissingChannels {
             missing: vec!["R, G, B (or diffuse.R/G/B and specular.R/G/B)".into()],
             available,

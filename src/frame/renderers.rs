@@ -12,6 +12,7 @@
 
 use std::collections::BTreeMap;
 
+use super::presets::ChannelMaps;
 use super::{NamedPlanes, Plane};
 
 /// How one canonical channel is computed from the file's channels.
@@ -98,11 +99,13 @@ fn passes<'a>(names: &[&'a str]) -> BTreeMap<&'a str, BTreeMap<&'a str, &'a str>
 }
 
 /// The canonical channels that can be derived from `names` and how, for buffers the file
-/// does not hold under a canonical or aliased name. Empty for files in the canonical layout.
-pub fn recipes(names: &[&str]) -> Vec<(String, Recipe)> {
+/// does not hold under a canonical or aliased name: from Cycles' passes, else through
+/// `maps`. Empty for files in the canonical layout. A map the job chose is the only one
+/// tried (Cycles' passes are then not looked for).
+pub fn recipes(names: &[&str], maps: &ChannelMaps) -> Vec<(String, Recipe)> {
     let resolved = super::layout::resolve(names);
     let has = |b: super::Buffer| resolved[b as usize].is_some();
-    let passes = passes(names);
+    let passes = if maps.chosen() { BTreeMap::new() } else { passes(names) };
     let pass = |candidates: &[&str], chans: &[&str]| -> Option<Vec<String>> {
         candidates.iter().find_map(|p| {
             let chs = passes.get(p)?;
@@ -159,14 +162,15 @@ pub fn recipes(names: &[&str]) -> Vec<(String, Recipe)> {
             add("depth", &["Z"], d.into_iter().map(Recipe::Depth).collect());
         }
     }
-    // Other renderers' AOV names, for what is still missing (not for Cycles frames).
+    // Other renderers' AOV names (the channel maps), for what is still missing (not for
+    // Cycles frames).
     let required = super::layout::REQUIRED;
     let derived = |b: super::Buffer, out: &[(String, Recipe)]| {
         has(b) || out.iter().any(|(n, _)| n.split('.').next() == Some(b.name()))
     };
     if !passes.contains_key("Combined") && required.iter().any(|b| !derived(*b, &out)) {
-        if let Some((_, preset)) = super::presets::recipes(names) {
-            let keep: Vec<(String, Recipe)> = preset
+        if let Some((_, mapped)) = maps.recipes(names) {
+            let keep: Vec<(String, Recipe)> = mapped
                 .into_iter()
                 .filter(|(n, _)| {
                     let base = n.split('.').next().unwrap_or("");
@@ -179,24 +183,14 @@ pub fn recipes(names: &[&str]) -> Vec<(String, Recipe)> {
     out
 }
 
-/// The renderer preset that maps `names`, if one does (for the log and the job).
-pub fn preset_of(names: &[&str]) -> Option<&'static str> {
-    let resolved = super::layout::resolve(names);
-    let canonical = super::layout::REQUIRED.iter().all(|b| resolved[*b as usize].is_some());
-    if canonical || passes(names).contains_key("Combined") {
-        return None;
-    }
-    super::presets::recipes(names).map(|(r, _)| r)
-}
-
 /// The Cycles fallback: all light taken as diffuse.
 pub const CYCLES_NO_DIFFUSE: &str = "the frame has the Cycles Combined pass but not the Diffuse Direct, Indirect and \
      Color passes: all light was treated as diffuse (divided by the albedo), so glossy highlights and reflections \
      are denoised as texture; enable the Diffuse passes (View Layer Properties > Passes > Light) for the exact split";
 
 /// What [`recipes`] can only approximate for `names`, as messages for the job.
-pub fn warnings(names: &[&str]) -> Vec<String> {
-    let fallback = recipes(names).iter().any(|(n, r)| n == "specular.R" && *r == Recipe::Zero);
+pub fn warnings(names: &[&str], maps: &ChannelMaps) -> Vec<String> {
+    let fallback = recipes(names, maps).iter().any(|(n, r)| n == "specular.R" && *r == Recipe::Zero);
     if fallback {
         vec![CYCLES_NO_DIFFUSE.to_string()]
     } else {
@@ -205,9 +199,13 @@ pub fn warnings(names: &[&str]) -> Vec<String> {
 }
 
 /// Why a frame that lacks required buffers lacks them, in its renderer's terms, when its
-/// channels say which renderer or which kind of output it is.
-pub fn hint(names: &[&str]) -> Option<String> {
-    let all = with_derived(names);
+/// channels say which renderer or which kind of output it is, or in the terms of the map
+/// the job chose.
+pub fn hint(names: &[&str], maps: &ChannelMaps) -> Option<String> {
+    if maps.chosen() {
+        return maps.hint(names);
+    }
+    let all = with_derived(names, maps);
     let all: Vec<&str> = all.iter().map(String::as_str).collect();
     let resolved = super::layout::resolve(&all);
     let has = |b: super::Buffer| resolved[b as usize].is_some();
@@ -228,20 +226,20 @@ pub fn hint(names: &[&str]) -> Option<String> {
                 .into(),
         );
     }
-    super::presets::hint(names)
+    maps.hint(names)
 }
 
 /// `names` plus the canonical names [`recipes`] can derive.
-pub fn with_derived(names: &[&str]) -> Vec<String> {
+pub fn with_derived(names: &[&str], maps: &ChannelMaps) -> Vec<String> {
     let mut all: Vec<String> = names.iter().map(|s| s.to_string()).collect();
-    all.extend(recipes(names).into_iter().map(|(n, _)| n));
+    all.extend(recipes(names, maps).into_iter().map(|(n, _)| n));
     all
 }
 
 /// Appends the planes [`recipes`] derives from `planes`.
-pub fn derive(planes: &mut NamedPlanes, len: usize) {
+pub fn derive(planes: &mut NamedPlanes, len: usize, maps: &ChannelMaps) {
     let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
-    let todo = recipes(&names);
+    let todo = recipes(&names, maps);
     if todo.is_empty() {
         return;
     }
@@ -307,7 +305,7 @@ mod tests {
         ];
         let mut planes: NamedPlanes =
             names.iter().enumerate().map(|(i, n)| (n.to_string(), vec![i as f32 + 1.0; 2])).collect();
-        derive(&mut planes, 2);
+        derive(&mut planes, 2, &ChannelMaps::default());
         let get = |n: &str| planes.iter().find(|(k, _)| k == n).map(|(_, p)| p[0]).unwrap();
         // diffuse.R = (DiffDir.R + DiffInd.R) × DiffCol.R = (5 + 8) × 11
         assert_eq!(get("diffuse.R"), 13.0 * 11.0);
@@ -337,6 +335,7 @@ mod tests {
 
     #[test]
     fn canonical_files_derive_nothing() {
-        assert!(recipes(&["diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B"]).is_empty());
+        let canonical = ["diffuse.R", "diffuse.G", "diffuse.B", "specular.R", "specular.G", "specular.B"];
+        assert!(recipes(&canonical, &ChannelMaps::default()).is_empty());
     }
 }

@@ -288,6 +288,7 @@ async fn info(State(app): State<AppState>, Extension(caller): Extension<Caller>)
             "threads_per_worker": s.engine.threads,
         },
         "models": app.service.models(),
+        "channel_maps": s.channel_maps.iter().map(|m| json!({ "name": m.name, "renderer": m.renderer })).collect::<Vec<_>>(),
         "caller": { "scope": caller.scope.name() },
         "settings": if caller.metrics { app.info.settings.clone() } else { Value::Null },
     }))

@@ -26,6 +26,9 @@ pub(crate) struct Claim {
     pub variant: Option<Variant>,
     pub fireflies: crate::engine::Fireflies,
     pub layers: Vec<Layer>,
+    /// How the frame's AOV names are read; `Err`: the job's channel map is no longer
+    /// known (the daemon restarted with another configuration).
+    pub channel_maps: Result<crate::frame::ChannelMaps, String>,
     pub deadline_at_ms: Option<i64>,
     /// Milliseconds the job waited in the queue before this run.
     pub queue_ms: f64,
@@ -162,9 +165,8 @@ impl WorkerLink {
         // The tile size of the contract the job's model has (for `auto`: that of full and
         // nocov when they agree, which the shipped models do); the worker's first progress
         // report has the exact count.
-        let contract_of = |v: crate::engine::Variant| {
-            s.models().and_then(|m| m.iter().find(|m| m.variant == v).map(|m| m.contract))
-        };
+        let contract_of =
+            |v: crate::engine::Variant| s.models().and_then(|m| m.iter().find(|m| m.variant == v).map(|m| m.contract));
         let contract = match r.options.variant {
             Some(v) => contract_of(v),
             None => Some(contract_of(crate::engine::Variant::Full))
@@ -184,6 +186,7 @@ impl WorkerLink {
             variant: r.options.variant,
             fireflies: r.options.fireflies(s.inner.settings.fireflies),
             layers: r.options.layers.clone(),
+            channel_maps: s.channel_maps(&r.options).map_err(|e| e.to_string()),
             deadline_at_ms: r.deadline_at_ms,
             queue_ms,
             cancel: entry.cancel.clone(),

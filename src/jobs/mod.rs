@@ -124,6 +124,9 @@ pub struct Settings {
     pub fireflies: Fireflies,
     /// Free bytes the data directory must keep (see [`health`]).
     pub min_free_bytes: u64,
+    /// How renderers' AOV names are read (the configured channel maps, then the shipped
+    /// presets); a job may choose one.
+    pub channel_maps: crate::frame::ChannelMaps,
 }
 
 impl Settings {
@@ -146,6 +149,7 @@ impl Settings {
             engine,
             fireflies: args.fireflies.settings(),
             min_free_bytes: args.min_free_bytes,
+            channel_maps: args.channel_maps(),
         }
     }
 
@@ -327,6 +331,16 @@ impl JobService {
 
     pub fn settings(&self) -> &Settings {
         &self.inner.settings
+    }
+
+    /// The channel maps a job's frame is read with (its own choice, else every map in
+    /// turn); an unknown map is a bad request naming the known ones.
+    pub fn channel_maps(&self, options: &JobOptions) -> Result<crate::frame::ChannelMaps> {
+        let maps = &self.inner.settings.channel_maps;
+        match &options.channel_map {
+            None => Ok(maps.clone()),
+            Some(choice) => maps.choose(choice).map_err(Error::BadRequest),
+        }
     }
 
     pub fn telemetry(&self) -> &Arc<Telemetry> {

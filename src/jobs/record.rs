@@ -151,11 +151,25 @@ pub struct JobOptions {
     /// Strength of the firefly handling, 0.1 to 10; `None` uses the daemon default.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub firefly_strength: Option<f32>,
+    /// How renderers' AOV names are read: a channel map's name or an inline map
+    /// ([`crate::frame::ChannelMaps::choose`]); `None`: every map in turn.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub channel_map: Option<String>,
 }
 
 impl JobOptions {
     /// Checks sizes and removes duplicate layers; empty strings count as absent.
     pub fn normalize(mut self) -> Result<JobOptions, String> {
+        if self.channel_map.as_deref().is_some_and(|m| m.trim().is_empty() || m.trim().eq_ignore_ascii_case("auto")) {
+            self.channel_map = None;
+        }
+        if let Some(m) = self.channel_map.as_deref().filter(|m| m.len() > crate::frame::presets::MAX_INLINE_MAP_BYTES) {
+            return Err(format!(
+                "channel_map is {} bytes, at most {} are accepted",
+                m.len(),
+                crate::frame::presets::MAX_INLINE_MAP_BYTES
+            ));
+        }
         for (what, v) in [("label", &mut self.label), ("idempotency_key", &mut self.idempotency_key)] {
             if v.as_deref() == Some("") {
                 *v = None;

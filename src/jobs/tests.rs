@@ -130,6 +130,7 @@ fn settings(capacity: usize) -> Settings {
         engine,
         fireflies: Default::default(),
         min_free_bytes: 0,
+        channel_maps: Default::default(),
     }
 }
 

@@ -156,10 +156,11 @@ impl Ticket {
         let input = store.input_path(&self.id);
         let reference = self.reference.map(|_| store.reference_path(&self.id));
         let limits = self.service.inner.settings.limits;
+        let maps = self.service.channel_maps(&self.options)?;
         let service = self.service.clone();
         let status = service
             .blocking(move |service| {
-                let info = validate::check_frame(&input, &limits).map_err(|e| Error::frame("frame", e))?;
+                let info = validate::check_frame(&input, &limits, &maps).map_err(|e| Error::frame("frame", e))?;
                 if let Some(reference) = reference {
                     let r = validate::check_reference(&reference, &limits).map_err(|e| Error::frame("reference", e))?;
                     crate::pipeline::check_same_size((info.width, info.height), (r.width, r.height))

@@ -7,7 +7,7 @@
 use std::io::BufReader;
 use std::path::Path;
 
-use crate::frame::{self, layout, FrameError, HeaderInfo, Limits};
+use crate::frame::{self, layout, ChannelMaps, FrameError, HeaderInfo, Limits};
 
 fn read_header(path: &Path, limits: &Limits) -> Result<HeaderInfo, FrameError> {
     let file = std::fs::File::open(path).map_err(|e| FrameError::Corrupt(format!("cannot open the upload: {e}")))?;
@@ -18,10 +18,11 @@ fn names(info: &HeaderInfo) -> Vec<&str> {
     info.channels.iter().map(String::as_str).collect()
 }
 
-/// Checks that the header provides every buffer a frame must have.
-pub fn check_frame(path: &Path, limits: &Limits) -> Result<HeaderInfo, FrameError> {
+/// Checks that the header provides every buffer a frame must have (renderers' AOV names
+/// through `maps`).
+pub fn check_frame(path: &Path, limits: &Limits, maps: &ChannelMaps) -> Result<HeaderInfo, FrameError> {
     let info = read_header(path, limits)?;
-    frame::check_required(&names(&info), layout::REQUIRED)?;
+    frame::check_required(&names(&info), layout::REQUIRED, maps)?;
     Ok(info)
 }
 

@@ -73,6 +73,10 @@ enum Stop {
 
 fn run(link: &WorkerLink, denoiser: &mut dyn Denoiser, claim: &Claim) -> Outcome {
     let started = Instant::now();
+    let channel_maps = match &claim.channel_maps {
+        Ok(maps) => maps.clone(),
+        Err(e) => return failed(JobErrorCode::InvalidFrame, e.clone()),
+    };
     let request = pipeline::Request {
         frame: &claim.input,
         reference: claim.reference.as_deref(),
@@ -80,6 +84,7 @@ fn run(link: &WorkerLink, denoiser: &mut dyn Denoiser, claim: &Claim) -> Outcome
         fireflies: claim.fireflies,
         layers: &claim.layers,
         limits: link.settings().limits,
+        channel_maps,
     };
     let mut stop = Stop::No;
     let result = pipeline::run(denoiser, &request, &mut |p| {
