@@ -237,6 +237,14 @@ pub struct ServeArgs {
     /// messages come under the `ort` target.
     #[arg(long, env = "MCDENOISE_LOG", default_value = "info,ort=warn", help_heading = "Operations")]
     pub log: String,
+    /// OpenTelemetry collector to send traces to over OTLP/gRPC (e.g.
+    /// `http://otel-collector:4317`): a span per HTTP request and per job run, with its
+    /// stages, carrying the job id (docs/api.md). Default: no traces.
+    #[arg(long, env = "MCDENOISE_OTLP_ENDPOINT", help_heading = "Operations")]
+    pub otlp_endpoint: Option<String>,
+    /// The `service.name` of the exported traces.
+    #[arg(long, env = "MCDENOISE_OTLP_SERVICE_NAME", default_value = "mcdenoise", help_heading = "Operations")]
+    pub otlp_service_name: String,
     /// On SIGTERM/SIGINT: how long running jobs may take to finish. Jobs still running
     /// then are stopped between two tiles and kept queued for the next start.
     #[arg(long, env = "MCDENOISE_SHUTDOWN_TIMEOUT", default_value = "30s", value_parser = parse_duration, help_heading = "Operations")]
@@ -365,6 +373,7 @@ impl ServeArgs {
             },
             "channel_maps": self.channel_maps().names(),
             "log_format": self.log_format,
+            "otlp_endpoint": self.otlp_endpoint,
             "shutdown_timeout": humantime::format_duration(self.shutdown_timeout).to_string(),
         })
     }

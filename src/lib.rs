@@ -15,7 +15,7 @@
 //!   [`jobs`] (the transport-free core: admission, persistent store, priority queue,
 //!   workers that own engines, progress events), [`http`] and [`grpc`] (the two
 //!   transports over one core), [`server`] (startup and graceful shutdown), [`telemetry`]
-//!   (logs and Prometheus metrics), [`error`] (one error type, two mappings), [`client`]
+//!   (logs and Prometheus metrics), [`otlp`] (optional OpenTelemetry traces), [`error`] (one error type, two mappings), [`client`]
 //!   (`mcdenoise submit`), [`wire`] (the job's typed wire forms and their
 //!   protobuf conversions), [`auth`] (bearer tokens, client identity), [`tls`] (rustls
 //!   for both listeners), [`conn`] (every connection in its own task, with its timeouts).
@@ -36,6 +36,7 @@ pub mod frame;
 pub mod grpc;
 pub mod http;
 pub mod jobs;
+pub mod otlp;
 pub mod pipeline;
 pub mod quality;
 pub mod server;

@@ -165,11 +165,14 @@ pub fn run(
     let started = Instant::now();
     let t = Instant::now();
     let carry = Carry { all: request.layers.contains(&Layer::All), written: written(request.layers) };
-    let (mut frame, mut carried) = decode_carrying(request, &carry)?;
-    let reference = request.reference.map(|p| decode(p, Input::Reference, &request.limits)).transpose()?;
-    if let Some(r) = &reference {
-        check_same_size((frame.width, frame.height), (r.width, r.height))?;
-    }
+    let (mut frame, mut carried, reference) = tracing::info_span!("decode").in_scope(|| {
+        let (frame, carried) = decode_carrying(request, &carry)?;
+        let reference = request.reference.map(|p| decode(p, Input::Reference, &request.limits)).transpose()?;
+        if let Some(r) = &reference {
+            check_same_size((frame.width, frame.height), (r.width, r.height))?;
+        }
+        Ok::<_, Failure>((frame, carried, reference))
+    })?;
     let decode_ms = ms(t);
     if frame.sanitized.total > 0 {
         tracing::warn!(samples = frame.sanitized.total, "non-finite samples replaced by 0");
@@ -178,7 +181,11 @@ pub fn run(
         tracing::info!(buffers = ?frame.missing_variances, "variance buffers missing; taken as 0");
     }
 
-    let out = denoiser.denoise(&frame, request.variant, request.fireflies, on_tile)?;
+    let span =
+        tracing::info_span!("denoise", width = frame.width, height = frame.height, tiles = tracing::field::Empty);
+    let out = span.in_scope(|| denoiser.denoise(&frame, request.variant, request.fireflies, on_tile))?;
+    span.record("tiles", out.tiles);
+    drop(span);
 
     let metrics = reference.as_ref().map(|r| {
         let (rc, noisy) = (r.color(), frame.color());
@@ -209,7 +216,9 @@ pub fn run(
         }
     }
     drop(components);
-    let encoded = carried.encode(frame, denoised).map_err(|e| Failure::Encode(e.to_string()))?;
+    let encoded = tracing::info_span!("encode")
+        .in_scope(|| carried.encode(frame, denoised))
+        .map_err(|e| Failure::Encode(e.to_string()))?;
     let encode_ms = ms(t);
 
     let timings = Timings {

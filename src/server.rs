@@ -377,14 +377,20 @@ pub async fn shutdown_signal() {
 
 /// `mcdenoise serve`: runs until SIGTERM/SIGINT, then shuts down gracefully.
 pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
-    crate::telemetry::init_logging(args.log_format, &args.log);
-    tracing::info!(config = %args.summary(), version = env!("CARGO_PKG_VERSION"), "starting mcdenoise serve");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .thread_name("mcdenoise-io")
         .build()
         .context("cannot start the async runtime")?;
-    runtime.block_on(async {
+    // The exporter's connection lives on the daemon's runtime.
+    let traces = match &args.otlp_endpoint {
+        Some(endpoint) => Some(runtime.block_on(async { crate::otlp::start(endpoint, &args.otlp_service_name) })?),
+        None => None,
+    };
+    let (traces, tracer) = traces.map_or((None, None), |(t, tracer)| (Some(t), Some(tracer)));
+    crate::telemetry::init_logging(args.log_format, &args.log, tracer);
+    tracing::info!(config = %args.summary(), version = env!("CARGO_PKG_VERSION"), "starting mcdenoise serve");
+    let served = runtime.block_on(async {
         let server = Server::start(args).await?;
         let token = server.shutdown_token();
         tokio::spawn(async move {
@@ -392,5 +398,10 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
             token.cancel();
         });
         server.wait().await
-    })
+    });
+    if let Some(traces) = traces {
+        // Sends what is still batched, on the runtime the exporter's connection lives on.
+        let _ = runtime.block_on(async { tokio::task::spawn_blocking(move || traces.shutdown()).await });
+    }
+    served
 }

@@ -15,7 +15,10 @@ use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
-use tracing_subscriber::EnvFilter;
+use tracing_subscriber::filter::{EnvFilter, LevelFilter, Targets};
+use tracing_subscriber::layer::SubscriberExt;
+use tracing_subscriber::util::SubscriberInitExt;
+use tracing_subscriber::Layer;
 
 use crate::jobs::record::Priority;
 
@@ -31,15 +34,22 @@ pub enum LogFormat {
 }
 
 /// Installs the global tracing subscriber, writing to stderr. `filter` uses the
-/// `RUST_LOG` syntax (e.g. `info,mcdenoise=debug`). Calling it twice is harmless.
-pub fn init_logging(format: LogFormat, filter: &str) {
+/// `RUST_LOG` syntax (e.g. `info,mcdenoise=debug`). With a `tracer`, the daemon's own
+/// spans (info level and above, whatever the log filter) are also exported as
+/// OpenTelemetry spans ([`crate::otlp`]). Calling it twice is harmless.
+pub fn init_logging(format: LogFormat, filter: &str, tracer: Option<opentelemetry_sdk::trace::Tracer>) {
     let filter = EnvFilter::try_new(filter).unwrap_or_else(|_| EnvFilter::new("info"));
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
-    let _ = match format {
-        LogFormat::Text => builder.try_init(),
-        LogFormat::Json => builder.json().flatten_event(true).with_current_span(true).with_span_list(false).try_init(),
+    let fmt = tracing_subscriber::fmt::layer().with_writer(std::io::stderr).with_ansi(ansi);
+    let fmt = match format {
+        LogFormat::Text => fmt.boxed(),
+        LogFormat::Json => fmt.json().flatten_event(true).with_current_span(true).with_span_list(false).boxed(),
     };
+    let spans = tracer.map(|tracer| {
+        let ours = Targets::new().with_target("mcdenoise", LevelFilter::INFO);
+        tracing_opentelemetry::layer().with_tracer(tracer).with_filter(ours)
+    });
+    let _ = tracing_subscriber::registry().with(fmt.with_filter(filter)).with(spans).try_init();
 }
 
 type Labels = Vec<(String, String)>;

@@ -571,6 +571,7 @@ mod tests {
             result_bytes: Some(123),
             client: Some("token:abc".into()),
             storage_failures: 0,
+            trace_parent: None,
             rev: 0,
         };
         JobStatus { record, queue_position: 0 }

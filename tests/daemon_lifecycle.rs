@@ -279,3 +279,90 @@ fn a_second_daemon_on_a_data_directory_in_use_exits_with_a_clear_error() {
     );
     assert!(first.terminate().success());
 }
+
+/// An OpenTelemetry collector on loopback that keeps every span it is sent.
+#[derive(Clone, Default)]
+struct Collector(std::sync::Arc<std::sync::Mutex<Vec<opentelemetry_proto::tonic::trace::v1::Span>>>);
+
+#[tonic::async_trait]
+impl opentelemetry_proto::tonic::collector::trace::v1::trace_service_server::TraceService for Collector {
+    async fn export(
+        &self,
+        request: tonic::Request<opentelemetry_proto::tonic::collector::trace::v1::ExportTraceServiceRequest>,
+    ) -> Result<
+        tonic::Response<opentelemetry_proto::tonic::collector::trace::v1::ExportTraceServiceResponse>,
+        tonic::Status,
+    > {
+        let mut spans = self.0.lock().unwrap();
+        for resource in request.into_inner().resource_spans {
+            let service = resource
+                .resource
+                .iter()
+                .flat_map(|r| &r.attributes)
+                .any(|a| a.key == "service.name" && format!("{:?}", a.value).contains("\"farm-denoiser\""));
+            assert!(service, "spans come with the configured service.name");
+            spans.extend(resource.scope_spans.into_iter().flat_map(|s| s.spans));
+        }
+        Ok(tonic::Response::new(Default::default()))
+    }
+}
+
+/// With `--otlp-endpoint` the daemon sends its spans to an OpenTelemetry collector: the
+/// submission's HTTP span continues the client's `traceparent` and carries the job id, and
+/// the job's run (on a worker, later) is that span's child, with its stages as children.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn traces_reach_an_otlp_collector_with_the_job_id() {
+    use opentelemetry_proto::tonic::collector::trace::v1::trace_service_server::TraceServiceServer;
+    use opentelemetry_proto::tonic::common::v1::any_value::Value as Any;
+    let collector = Collector::default();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let endpoint = format!("http://{}", listener.local_addr().unwrap());
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .add_service(TraceServiceServer::new(collector.clone()))
+            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
+    );
+    let dir = tempfile::tempdir().unwrap();
+    let mut p = spawn_daemon(dir.path(), &["--otlp-endpoint", &endpoint, "--otlp-service-name", "farm-denoiser"]);
+    let http = mcdenoise::client::HttpClient::new(&p.http, None);
+    wait_ready(&http).await;
+    let (trace_id, client_span) = ("4bf92f3577b34da6a3ce929d0e0e4736", "00f067aa0ba902b7");
+    let traceparent = format!("00-{trace_id}-{client_span}-01");
+    let headers = [("content-type", "image/x-exr"), ("traceparent", traceparent.as_str())];
+    let (status, job) = http
+        .json(hyper::Method::POST, "/v1/jobs", &headers, mcdenoise::client::body_bytes(frame(32, 24)))
+        .await
+        .unwrap();
+    assert_eq!(status, StatusCode::ACCEPTED, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    wait_succeeded(&http, &id, Duration::from_secs(60)).await;
+    let exit = p.terminate();
+    assert!(exit.success(), "{exit}: {}", p.logs.lock().unwrap().join("\n"));
+
+    let spans = collector.0.lock().unwrap().clone();
+    let hex = |b: &[u8]| b.iter().map(|x| format!("{x:02x}")).collect::<String>();
+    let attr = |s: &opentelemetry_proto::tonic::trace::v1::Span, key: &str| {
+        s.attributes.iter().find(|a| a.key == key).and_then(|a| a.value.clone()?.value).map(|v| match v {
+            Any::StringValue(s) => s,
+            Any::IntValue(i) => i.to_string(),
+            other => format!("{other:?}"),
+        })
+    };
+    let names: Vec<&str> = spans.iter().map(|s| s.name.as_str()).collect();
+    let find =
+        |name: &str| spans.iter().find(|s| s.name == name).unwrap_or_else(|| panic!("no `{name}` span in {names:?}"));
+    let submit = find("POST /v1/jobs");
+    assert_eq!((hex(&submit.trace_id), hex(&submit.parent_span_id)), (trace_id.to_string(), client_span.to_string()));
+    assert_eq!(attr(submit, "job_id").as_deref(), Some(id.as_str()));
+    assert_eq!(attr(submit, "http.response.status_code").as_deref(), Some("202"));
+    let run = find("job");
+    assert_eq!(attr(run, "job_id").as_deref(), Some(id.as_str()));
+    assert_eq!(attr(run, "outcome").as_deref(), Some("succeeded"));
+    assert_eq!((hex(&run.trace_id), hex(&run.parent_span_id)), (trace_id.to_string(), hex(&submit.span_id)));
+    for stage in ["decode", "denoise", "encode"] {
+        let s = find(stage);
+        assert_eq!((hex(&s.trace_id), hex(&s.parent_span_id)), (trace_id.to_string(), hex(&run.span_id)), "{stage}");
+    }
+    // A job's routes carry its id too.
+    assert!(spans.iter().any(|s| s.name == "GET /v1/jobs/{id}" && attr(s, "job_id").as_deref() == Some(id.as_str())));
+}

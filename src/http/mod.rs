@@ -171,14 +171,33 @@ async fn json_errors(request: Request, next: Next) -> Response {
     Response::from_parts(parts, Body::from(body))
 }
 
-/// Logs each request and counts it by route template and status.
+/// Logs each request, counts it by route template and status, and runs it in an
+/// `http.request` span (exported with `--otlp-endpoint`: [`crate::otlp`]) that carries the
+/// job id of a job's route or of a submission, and continues a client's `traceparent`.
 async fn observe(State(app): State<AppState>, request: Request, next: Next) -> Response {
     let route = request.extensions().get::<MatchedPath>().map(|p| p.as_str().to_owned());
     let method = request.method().clone();
     let t = std::time::Instant::now();
-    let response = next.run(request).await;
+    let span = {
+        let route = route.as_deref().unwrap_or("unmatched");
+        let job_id = route.starts_with("/v1/jobs/{id}").then(|| request.uri().path().split('/').nth(3)).flatten();
+        let span = tracing::info_span!(
+            "http.request",
+            otel.name = %format!("{method} {route}"),
+            otel.kind = "server",
+            http.request.method = %method,
+            http.route = route,
+            http.response.status_code = tracing::field::Empty,
+            job_id = job_id,
+        );
+        let header = |name: &str| request.headers().get(name).and_then(|v| v.to_str().ok());
+        crate::otlp::continue_trace(&span, header("traceparent"), header("tracestate"));
+        span
+    };
+    let response = tracing::Instrument::instrument(next.run(request), span.clone()).await;
     let route = route.as_deref().unwrap_or("unmatched");
     let status = response.status();
+    span.record("http.response.status_code", status.as_u16());
     app.service.telemetry().http_request(route, status.as_u16());
     let ms = t.elapsed().as_secs_f64() * 1e3;
     // 503 is an expected answer (loading, draining): not an error of the daemon.
@@ -322,6 +341,7 @@ fn idempotency_header(headers: &HeaderMap) -> Result<Option<String>, Error> {
 }
 
 fn accepted(status: &JobStatus, replayed: bool) -> Response {
+    tracing::Span::current().record("job_id", status.record.id.as_str());
     let mut response = (StatusCode::ACCEPTED, Json(JobView::from(status))).into_response();
     let h = response.headers_mut();
     if let Ok(v) = HeaderValue::from_str(&format!("/v1/jobs/{}", status.record.id)) {

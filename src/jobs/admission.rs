@@ -272,6 +272,7 @@ impl JobService {
             result_bytes: None,
             client: Some(ticket.client().as_str().to_string()),
             storage_failures: 0,
+            trace_parent: ticket.trace_parent.clone(),
             rev: 0,
         };
         self.inner.store.put(&record)?;

@@ -30,6 +30,8 @@ pub(crate) struct Claim {
     /// known (the daemon restarted with another configuration).
     pub channel_maps: Result<crate::frame::ChannelMaps, String>,
     pub deadline_at_ms: Option<i64>,
+    /// The submission's trace context ([`crate::otlp`]).
+    pub trace_parent: Option<String>,
     /// Milliseconds the job waited in the queue before this run.
     pub queue_ms: f64,
     pub cancel: Arc<AtomicBool>,
@@ -188,6 +190,7 @@ impl WorkerLink {
             layers: r.options.layers.clone(),
             channel_maps: s.channel_maps(&r.options).map_err(|e| e.to_string()),
             deadline_at_ms: r.deadline_at_ms,
+            trace_parent: r.trace_parent.clone(),
             queue_ms,
             cancel: entry.cancel.clone(),
         };

@@ -349,6 +349,10 @@ pub struct JobRecord {
     /// a bound ([`MAX_STORAGE_FAILURES`]).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub storage_failures: u32,
+    /// The W3C `traceparent` of the submission's span, when traces are exported: the job's
+    /// runs continue that trace ([`crate::otlp`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trace_parent: Option<String>,
     /// Revision of the stored copy (set by the store at each write; see `jobs::store`).
     #[serde(default)]
     pub rev: u64,

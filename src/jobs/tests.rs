@@ -397,6 +397,7 @@ fn record(id: &str, seq: u64, state: JobState) -> JobRecord {
         result_bytes: None,
         client: None,
         storage_failures: 0,
+        trace_parent: None,
         rev: 0,
     }
 }

@@ -43,6 +43,8 @@ pub struct Ticket {
     reference: Option<u64>,
     done: bool,
     slot: Slot,
+    /// The submission's trace context, kept with the job ([`crate::otlp`]).
+    pub(super) trace_parent: Option<String>,
 }
 
 impl Ticket {
@@ -53,7 +55,19 @@ impl Ticket {
         transport: &'static str,
         slot: Slot,
     ) -> Ticket {
-        Ticket { service, id, options, transport, received: 0, frame: None, reference: None, done: false, slot }
+        let trace_parent = crate::otlp::current_traceparent();
+        Ticket {
+            service,
+            id,
+            options,
+            transport,
+            received: 0,
+            frame: None,
+            reference: None,
+            done: false,
+            slot,
+            trace_parent,
+        }
     }
 
     pub fn id(&self) -> &str {

@@ -43,7 +43,17 @@ fn worker_main(link: WorkerLink, denoisers: DenoiserFactory, index: usize) {
     tracing::info!(ms = t.elapsed().as_secs_f64() * 1e3, "models loaded and warmed up");
     link.ready(denoiser.models());
     while let Some(claim) = link.next_job() {
-        let span = tracing::info_span!("job", job_id = %claim.id, attempt = claim.attempt);
+        // Each run is a trace of its own, or continues its submission's ([`crate::otlp`]).
+        let span = tracing::info_span!(
+            parent: None,
+            "job",
+            job_id = %claim.id,
+            attempt = claim.attempt,
+            worker = index,
+            variant = tracing::field::Empty,
+            outcome = tracing::field::Empty,
+        );
+        crate::otlp::continue_trace(&span, claim.trace_parent.as_deref(), None);
         let _guard = span.enter();
         tracing::info!("started");
         // A panic fails this job only; the worker and its denoiser go on.
@@ -53,6 +63,17 @@ fn worker_main(link: WorkerLink, denoisers: DenoiserFactory, index: usize) {
                 tracing::error!(error = %message, "the job panicked");
                 failed(JobErrorCode::Internal, format!("the denoiser failed: {message}"))
             });
+        let (ended, variant) = match &outcome {
+            Outcome::Succeeded(s) => ("succeeded", Some(s.output.variant.name())),
+            Outcome::Failed(e, _) => (e.code.name(), None),
+            Outcome::Cancelled => ("cancelled", None),
+            Outcome::StorageFault(_) => ("storage_fault", None),
+            Outcome::Interrupted => ("interrupted", None),
+        };
+        span.record("outcome", ended);
+        if let Some(v) = variant {
+            span.record("variant", v);
+        }
         link.finish(claim, outcome);
     }
     tracing::debug!("worker stopped");
