@@ -168,6 +168,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         fireflies,
         layers: &layers,
         limits: args.frame.limits(),
+        keep_colors: false,
     };
     let out = pipeline::run(&mut engine, &request, &mut |p| {
         tracing::debug!(tile = p.tiles_done, of = p.tiles_total, "tile done");

@@ -162,9 +162,8 @@ impl WorkerLink {
         // The tile size of the contract the job's model has (for `auto`: that of full and
         // nocov when they agree, which the shipped models do); the worker's first progress
         // report has the exact count.
-        let contract_of = |v: crate::engine::Variant| {
-            s.models().and_then(|m| m.iter().find(|m| m.variant == v).map(|m| m.contract))
-        };
+        let contract_of =
+            |v: crate::engine::Variant| s.models().and_then(|m| m.iter().find(|m| m.variant == v).map(|m| m.contract));
         let contract = match r.options.variant {
             Some(v) => contract_of(v),
             None => Some(contract_of(crate::engine::Variant::Full))
@@ -248,6 +247,7 @@ impl WorkerLink {
         let Some(record) = service.lock().jobs.get(id).map(|e| e.record.clone()) else { return Ok(None) };
         let t = Instant::now();
         let out = s.output;
+        service.keep_preview_sources(id, out.input_color.as_ref(), out.reference_color.as_ref());
         let mut finished = Finished {
             variant: out.variant,
             progress: Progress { tiles_done: out.tiles as u32, tiles_total: out.tiles as u32 },

@@ -80,6 +80,7 @@ fn run(link: &WorkerLink, denoiser: &mut dyn Denoiser, claim: &Claim) -> Outcome
         fireflies: claim.fireflies,
         layers: &claim.layers,
         limits: link.settings().limits,
+        keep_colors: true,
     };
     let mut stop = Stop::No;
     let result = pipeline::run(denoiser, &request, &mut |p| {
