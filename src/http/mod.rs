@@ -521,7 +521,12 @@ impl Drop for DrainOnDrop {
 fn serde_urlencoded_query(q: &str) -> Result<OptionsQuery, Error> {
     Query::<OptionsQuery>::try_from_uri(&format!("/?{q}").parse().map_err(|_| Error::BadRequest("bad query".into()))?)
         .map(|Query(q)| q)
-        .map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))
+        .map_err(bad_query)
+}
+
+/// A query string the handler's query type refuses, as the API's error.
+fn bad_query(e: axum::extract::rejection::QueryRejection) -> Error {
+    Error::BadRequest(format!("bad query string: {}", e.body_text()))
 }
 
 /// Largest `options` part of a multipart body, in bytes.
@@ -626,7 +631,7 @@ async fn list(
     Extension(caller): Extension<Caller>,
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<JobList>, ApiError> {
-    let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
+    let Query(q) = query.map_err(bad_query)?;
     let state = q.state.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?;
     let priority = q.priority.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?;
     let newest_first = match q.order.as_deref() {
@@ -714,7 +719,7 @@ async fn preview(
     Path(id): Path<String>,
     query: Result<Query<PreviewQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Response, ApiError> {
-    let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
+    let Query(q) = query.map_err(bad_query)?;
     let image: PreviewImage = q
         .image
         .as_deref()

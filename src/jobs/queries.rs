@@ -134,7 +134,7 @@ impl JobService {
             if r.state == JobState::Queued {
                 *queued_by_priority.entry(r.options.priority.name()).or_default() += 1;
             }
-            if !r.finished_at_ms.is_some_and(|t| t > since) {
+            if r.finished_at_ms.is_none_or(|t| t <= since) {
                 continue;
             }
             match r.state {
