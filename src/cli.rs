@@ -176,6 +176,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         layers: &layers,
         limits: args.frame.limits(),
         channel_maps,
+        keep_colors: false,
     };
     let out = pipeline::run(&mut engine, &request, &mut |p| {
         tracing::debug!(tile = p.tiles_done, of = p.tiles_total, "tile done");

@@ -10,12 +10,14 @@
 //! - [`quality`]: image-quality metrics (RelMSE, DSSIM, PSNR, SMAPE).
 //! - [`pipeline`]: one frame through a denoiser: decode, denoise, encode, quality metrics
 //!   (shared by `mcdenoise run` and the daemon's workers).
+//! - [`preview`]: tone-mapped PNG previews of linear frames (the dashboard's images).
 //! - [`cli`]: the offline commands (`mcdenoise run`, `mcdenoise preprocess`).
 //! - The daemon (`mcdenoise serve`, `docs/api.md`): [`config`] (flags, environment, file),
 //!   [`jobs`] (the transport-free core: admission, persistent store, priority queue,
 //!   workers that own engines, progress events), [`http`] and [`grpc`] (the two
-//!   transports over one core), [`server`] (startup and graceful shutdown), [`telemetry`]
-//!   (logs and Prometheus metrics), [`otlp`] (optional OpenTelemetry traces), [`error`] (one error type, two mappings), [`client`]
+//!   transports over one core; `http` also serves the dashboard), [`server`] (startup and
+//!   graceful shutdown), [`telemetry`] (logs and Prometheus metrics), [`otlp`] (optional
+//!   OpenTelemetry traces), [`error`] (one error type, two mappings), [`client`]
 //!   (`mcdenoise submit`), [`wire`] (the job's typed wire forms and their
 //!   protobuf conversions), [`auth`] (bearer tokens, client identity), [`tls`] (rustls
 //!   for both listeners), [`conn`] (every connection in its own task, with its timeouts).
@@ -38,6 +40,7 @@ pub mod http;
 pub mod jobs;
 pub mod otlp;
 pub mod pipeline;
+pub mod preview;
 pub mod quality;
 pub mod server;
 pub mod telemetry;

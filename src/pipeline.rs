@@ -10,6 +10,7 @@ use std::time::Instant;
 use crate::engine::{Denoised, Denoiser, EngineError, Fireflies, FireflyReport, Progress, Variant};
 use crate::frame::{Carried, Carry, ChannelMaps, Frame, FrameError, Limits, Sanitized};
 use crate::jobs::{Layer, Timings};
+use crate::preview::Rgb;
 use crate::quality::Comparison;
 
 /// What to denoise.
@@ -26,6 +27,9 @@ pub struct Request<'a> {
     pub limits: Limits,
     /// How renderers' AOV names are read.
     pub channel_maps: ChannelMaps,
+    /// Whether the output carries the decoded colour of the frame and the reference
+    /// ([`Output::input_color`]): the daemon keeps it for its previews.
+    pub keep_colors: bool,
 }
 
 /// A denoised frame, encoded: float32 `R,G,B`, the requested layers, and what
@@ -51,6 +55,10 @@ pub struct Output {
     /// `preprocess` includes the firefly handling (also given alone in `fireflies_ms`).
     pub timings: Timings,
     pub fireflies_ms: f64,
+    /// With [`Request::keep_colors`]: the frame's colour as decoded (`Frame::color`) and
+    /// the reference's.
+    pub input_color: Option<Rgb>,
+    pub reference_color: Option<Rgb>,
 }
 
 /// Which input a failure concerns.
@@ -186,6 +194,8 @@ pub fn run(
     let out = span.in_scope(|| denoiser.denoise(&frame, request.variant, request.fireflies, on_tile))?;
     span.record("tiles", out.tiles);
     drop(span);
+    let colors = |f: &Frame| request.keep_colors.then(|| Rgb::new(f.width, f.height, f.color()));
+    let (input_color, reference_color) = (colors(&frame), reference.as_ref().and_then(colors));
 
     let metrics = reference.as_ref().map(|r| {
         let (rc, noisy) = (r.color(), frame.color());
@@ -243,5 +253,7 @@ pub fn run(
         fireflies,
         timings,
         fireflies_ms: stages.fireflies.as_secs_f64() * 1e3,
+        input_color,
+        reference_color,
     })
 }

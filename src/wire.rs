@@ -24,6 +24,10 @@ pub struct JobView {
     pub priority: Priority,
     pub label: Option<String>,
     pub idempotency_key: Option<String>,
+    /// Who submitted it (`token:<digest prefix>` or `ip:<address>`; `None` for records
+    /// older than owners): what the `client` filter of a listing matches.
+    #[serde(default)]
+    pub client: Option<String>,
     /// 1-based, while queued.
     pub queue_position: Option<u64>,
     pub progress: Progress,
@@ -104,6 +108,7 @@ impl From<&JobStatus> for JobView {
             priority: r.options.priority,
             label: r.options.label.clone(),
             idempotency_key: r.options.idempotency_key.clone(),
+            client: r.client.clone(),
             queue_position: (r.state == JobState::Queued).then_some(s.queue_position),
             progress: r.progress,
             width: r.width,
@@ -402,6 +407,7 @@ impl From<&JobStatus> for pb::Job {
             priority: pb::Priority::from(r.options.priority) as i32,
             label: r.options.label.clone().unwrap_or_default(),
             idempotency_key: r.options.idempotency_key.clone().unwrap_or_default(),
+            client: r.client.clone().unwrap_or_default(),
             queue_position: s.queue_position,
             progress: Some(r.progress.into()),
             timings: r.timings.map(Into::into),
@@ -467,6 +473,7 @@ impl TryFrom<pb::Job> for JobView {
             priority: priority_from_pb(j.priority)?.unwrap_or_default(),
             label: Some(j.label).filter(|s| !s.is_empty()),
             idempotency_key: Some(j.idempotency_key).filter(|s| !s.is_empty()),
+            client: Some(j.client).filter(|s| !s.is_empty()),
             queue_position: (state == JobState::Queued).then_some(j.queue_position),
             progress: j
                 .progress

@@ -18,6 +18,7 @@ use serde_json::Value;
 
 use daemon_common::*;
 use mcdenoise::client::{body_bytes, HttpClient};
+use mcdenoise::http::dashboard::{asset, asset_names, CONTENT_SECURITY_POLICY, DASHBOARD_ROUTES};
 use mcdenoise::http::{OPEN_ROUTES, PROTECTED_ROUTES};
 
 /// `(method, path)` pairs of the OpenAPI document.
@@ -56,6 +57,61 @@ async fn every_http_route_but_the_probes_needs_the_token() {
     for (method, path) in OPEN_ROUTES {
         let resp = d.http.send(method.parse().unwrap(), path, &[], body_bytes(Bytes::new())).await.unwrap();
         assert_eq!(resp.status(), StatusCode::OK, "{method} {path} is open");
+    }
+    d.stop().await;
+}
+
+/// The dashboard's shell is open, holds no data and loads nothing from elsewhere: every
+/// file is served without a token under the strict policy, names no other origin, has no
+/// inline script or style; the API calls it makes still need the token.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_dashboard_shell_is_open_and_loads_nothing_from_outside() {
+    assert_eq!(DASHBOARD_ROUTES, &[("GET", "/"), ("GET", "/ui/{file}")]);
+    for (method, path) in DASHBOARD_ROUTES {
+        assert!(!openapi_routes().contains(&(method.to_string(), path.to_string())), "{path} is not an API operation");
+    }
+    assert!(CONTENT_SECURITY_POLICY.contains("default-src 'none'"));
+    for directive in ["script-src 'self'", "style-src 'self'", "connect-src 'self'", "img-src 'self' blob:"] {
+        assert!(CONTENT_SECURITY_POLICY.contains(directive), "{directive}");
+    }
+    assert!(!CONTENT_SECURITY_POLICY.contains("unsafe-"), "no inline script or style is allowed");
+
+    let dir = tempfile::tempdir().unwrap();
+    let d = start_with_token(dir.path(), &["--auth-token", "s3cret"], None).await;
+    d.ready().await;
+    for name in asset_names() {
+        let path = if name == "index.html" { "/".to_string() } else { format!("/ui/{name}") };
+        let resp = d.http.send(Method::GET, &path, &[], body_bytes(Bytes::new())).await.unwrap();
+        assert_eq!(resp.status(), StatusCode::OK, "{path} needs no token");
+        let h = resp.headers().clone();
+        assert_eq!(h["content-security-policy"], CONTENT_SECURITY_POLICY, "{path}");
+        assert_eq!(h["x-content-type-options"], "nosniff", "{path}");
+        let etag = h["etag"].to_str().unwrap().to_string();
+        let body = resp.into_body().collect().await.unwrap().to_bytes();
+        assert_eq!(&body[..], asset(name).unwrap(), "{path} serves the embedded file");
+        let text = std::str::from_utf8(&body).unwrap().replace("http://www.w3.org/2000/svg", "");
+        for outside in ["http://", "https://", "//cdn", "@import", "url("] {
+            assert!(!text.contains(outside), "{name} names `{outside}`");
+        }
+        if name == "index.html" {
+            assert_eq!(text.matches("<script").count(), text.matches("<script src=\"/ui/").count(), "no inline script");
+            assert!(!text.contains(" style=") && !text.contains("<style"), "no inline style");
+            let handler = text.split(" on").skip(1).any(|rest| {
+                rest.split_once('=')
+                    .is_some_and(|(name, _)| !name.is_empty() && name.bytes().all(|b| b.is_ascii_lowercase()))
+            });
+            assert!(!handler, "no inline event handler");
+        }
+        // Unchanged: 304.
+        let again =
+            d.http.send(Method::GET, &path, &[("if-none-match", &etag)], body_bytes(Bytes::new())).await.unwrap();
+        assert_eq!(again.status(), StatusCode::NOT_MODIFIED, "{path}");
+    }
+    let (status, body) = d.get_json("/ui/secrets.json").await;
+    assert_eq!((status, body["error"]["code"].as_str()), (StatusCode::NOT_FOUND, Some("not_found")));
+    for path in ["/v1/stats", "/v1/jobs?order=newest&limit=50", "/v1/jobs/x/preview?image=result"] {
+        let resp = d.http.send(Method::GET, path, &[], body_bytes(Bytes::new())).await.unwrap();
+        assert_eq!(resp.status(), StatusCode::UNAUTHORIZED, "{path}: the page's data calls need the token");
     }
     d.stop().await;
 }

@@ -191,6 +191,8 @@ impl Denoiser for Api {
                 limit: (r.page_size > 0).then_some(r.page_size as usize),
                 after: Some(r.page_token).filter(|s| !s.is_empty()),
                 owner: caller.owner_filter(),
+                client: Some(r.client).filter(|s| !s.is_empty()),
+                newest_first: r.newest_first,
             };
             let (jobs, next) = self.service.list(&filter).map_err(|e| status(&e))?;
             Ok(Response::new(pb::ListJobsResponse {

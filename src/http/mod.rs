@@ -1,8 +1,9 @@
 //! The HTTP transport (axum): JSON under `/v1`, Server-Sent Events for progress, the
-//! EXR result as a download, health probes and Prometheus metrics. Every handler is a thin
-//! translation onto [`JobService`]; the reference is `docs/api.md` and the OpenAPI
-//! document served at `/v1/openapi.json`.
+//! EXR result as a download, PNG previews, health probes and Prometheus metrics, and the
+//! web dashboard ([`dashboard`]). Every handler is a thin translation onto [`JobService`];
+//! the reference is `docs/api.md` and the OpenAPI document served at `/v1/openapi.json`.
 
+pub mod dashboard;
 mod error;
 pub mod multipart;
 
@@ -31,7 +32,9 @@ use multipart::{FormData, FormError};
 
 use crate::auth::{Caller, ClientId, Tokens};
 use crate::error::Error;
-use crate::jobs::{Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, ListFilter, UploadPart};
+use crate::jobs::{
+    Admission, JobEvent, JobOptions, JobService, JobState, JobStatus, ListFilter, PreviewImage, UploadPart,
+};
 use crate::wire::{JobList, JobView, OptionsQuery};
 
 /// The OpenAPI 3.1 description of this API.
@@ -74,6 +77,8 @@ pub const PROTECTED_ROUTES: &[(&str, &str)] = &[
     ("POST", "/v1/jobs/{id}/cancel"),
     ("GET", "/v1/jobs/{id}/events"),
     ("GET", "/v1/jobs/{id}/result"),
+    ("GET", "/v1/jobs/{id}/preview"),
+    ("GET", "/v1/stats"),
     ("GET", "/v1/models"),
     ("GET", "/v1/info"),
     ("GET", "/v1/openapi.json"),
@@ -92,6 +97,8 @@ fn handler(method: &str, path: &str) -> axum::routing::MethodRouter<AppState> {
         ("POST", "/v1/jobs/{id}/cancel") => post(cancel),
         ("GET", "/v1/jobs/{id}/events") => get(events),
         ("GET", "/v1/jobs/{id}/result") => get(result),
+        ("GET", "/v1/jobs/{id}/preview") => get(preview),
+        ("GET", "/v1/stats") => get(stats),
         ("GET", "/v1/models") => get(models),
         ("GET", "/v1/info") => get(info),
         ("GET", "/v1/openapi.json") => get(openapi),
@@ -110,10 +117,11 @@ fn routes(table: &[(&str, &str)]) -> Router<AppState> {
     router
 }
 
-/// The whole HTTP API. Serve it through [`per_peer`]: without authentication, clients are
-/// told apart by their address.
+/// The whole HTTP API and the dashboard. Serve it through [`per_peer`]: without
+/// authentication, clients are told apart by their address.
 pub fn router(state: AppState) -> Router {
     open_and_protected(&state, PROTECTED_ROUTES, "no such route")
+        .merge(dashboard::routes())
         // Uploads are streamed to disk and limited by `--max-body-bytes` as they arrive.
         .layer(DefaultBodyLimit::disable())
         .layer(middleware::from_fn_with_state(state.clone(), observe))
@@ -534,7 +542,12 @@ impl Drop for DrainOnDrop {
 fn serde_urlencoded_query(q: &str) -> Result<OptionsQuery, Error> {
     Query::<OptionsQuery>::try_from_uri(&format!("/?{q}").parse().map_err(|_| Error::BadRequest("bad query".into()))?)
         .map(|Query(q)| q)
-        .map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))
+        .map_err(bad_query)
+}
+
+/// A query string the handler's query type refuses, as the API's error.
+fn bad_query(e: axum::extract::rejection::QueryRejection) -> Error {
+    Error::BadRequest(format!("bad query string: {}", e.body_text()))
 }
 
 /// Largest `options` part of a multipart body, in bytes.
@@ -628,6 +641,8 @@ struct ListQuery {
     state: Option<String>,
     priority: Option<String>,
     label: Option<String>,
+    client: Option<String>,
+    order: Option<String>,
     limit: Option<usize>,
     page_token: Option<String>,
 }
@@ -637,9 +652,20 @@ async fn list(
     Extension(caller): Extension<Caller>,
     query: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<JobList>, ApiError> {
-    let Query(q) = query.map_err(|e| Error::BadRequest(format!("bad query string: {}", e.body_text())))?;
+    let Query(q) = query.map_err(bad_query)?;
     let state = q.state.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?;
     let priority = q.priority.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?;
+    let newest_first = match q.order.as_deref() {
+        None | Some("oldest") => false,
+        Some("newest") => true,
+        Some(other) => {
+            return Err(Error::BadRequest(format!(
+                "unknown order `{}` (expected oldest or newest)",
+                crate::error::truncate(other, crate::error::ECHO_CHARS)
+            ))
+            .into())
+        }
+    };
     let filter = ListFilter {
         state,
         priority,
@@ -647,6 +673,8 @@ async fn list(
         limit: q.limit,
         after: q.page_token,
         owner: caller.owner_filter(),
+        client: q.client.filter(|c| !c.is_empty()),
+        newest_first,
     };
     let (jobs, next) = app.service.list(&filter)?;
     Ok(Json(JobList { jobs: jobs.iter().map(JobView::from).collect(), next_page_token: next }))
@@ -692,6 +720,60 @@ async fn result(
         Body::from_stream(stream),
     )
         .into_response())
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PreviewQuery {
+    image: Option<String>,
+    exposure: Option<f32>,
+    view: Option<String>,
+    max_size: Option<usize>,
+    region: Option<String>,
+}
+
+/// `GET /v1/jobs/{id}/preview`: a PNG of the job's input, result or reference, tone
+/// mapped by the daemon ([`crate::preview`]) and cached ([`JobService::preview`]).
+async fn preview(
+    State(app): State<AppState>,
+    Extension(caller): Extension<Caller>,
+    Path(id): Path<String>,
+    query: Result<Query<PreviewQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, ApiError> {
+    let Query(q) = query.map_err(bad_query)?;
+    let image: PreviewImage = q
+        .image
+        .as_deref()
+        .ok_or_else(|| Error::BadRequest("name the image: image=input, result or reference".into()))?
+        .parse()
+        .map_err(Error::BadRequest)?;
+    let spec = crate::preview::Spec {
+        exposure: q.exposure.unwrap_or(0.0),
+        view: q.view.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?.unwrap_or_default(),
+        max_size: q.max_size.unwrap_or(crate::preview::DEFAULT_MAX_SIZE),
+        region: q.region.as_deref().map(str::parse).transpose().map_err(Error::BadRequest)?,
+    };
+    let png = app.service.preview(&id, &caller, image, spec).await?;
+    Ok((
+        [(header::CONTENT_TYPE, "image/png"), (header::CACHE_CONTROL, "private, max-age=3600")],
+        Body::from(png.to_vec()),
+    )
+        .into_response())
+}
+
+/// `GET /v1/stats`: totals by state and priority and the last hour's throughput over the
+/// jobs the caller may see, with the queue's capacity and the workers.
+async fn stats(State(app): State<AppState>, Extension(caller): Extension<Caller>) -> Json<Value> {
+    let stats = app.service.stats(caller.owner_filter().as_deref());
+    let s = app.service.settings();
+    Json(json!({
+        "jobs": stats.jobs,
+        "by_state": stats.by_state,
+        "queued_by_priority": stats.queued_by_priority,
+        "last_hour": stats.last_hour,
+        "queue_capacity": s.capacity,
+        "workers": s.workers,
+    }))
 }
 
 /// The JSON data of an SSE event.

@@ -254,6 +254,7 @@ impl WorkerLink {
         let Some(record) = service.lock().jobs.get(id).map(|e| e.record.clone()) else { return Ok(None) };
         let t = Instant::now();
         let out = s.output;
+        service.keep_preview_sources(id, out.input_color.as_ref(), out.reference_color.as_ref());
         let mut finished = Finished {
             variant: out.variant,
             progress: Progress { tiles_done: out.tiles as u32, tiles_total: out.tiles as u32 },

@@ -15,7 +15,8 @@
 //! - `lifecycle`: the one `settle` of every final state, cancel, delete, the retention
 //!   sweep, the shutdown steps.
 //! - `claims`: the workers' side (`WorkerLink`): claims, progress, results.
-//! - `queries`: reads: get, list, watch, events, results.
+//! - `queries`: reads: get, list, watch, events, results, totals.
+//! - `previews`: tone-mapped PNG previews of a job's frames, cached (the dashboard).
 //! - `recovery`: the state rebuilt from the store at startup (after a crash too).
 //! - [`store`]: the redb database and the files of each job.
 //! - [`health`]: whether the data directory can take writes (readiness, admission).
@@ -51,6 +52,7 @@ mod admission;
 mod claims;
 mod health;
 mod lifecycle;
+mod previews;
 mod queries;
 pub mod queue;
 pub mod record;
@@ -79,7 +81,8 @@ use crate::frame::Limits;
 use crate::telemetry::Telemetry;
 pub use admission::{Admission, Slot};
 pub use health::StorageProblem;
-pub use queries::ListFilter;
+pub use previews::PreviewImage;
+pub use queries::{ListFilter, Stats, Throughput, STATS_WINDOW_MS};
 use queue::Queue;
 pub use record::*;
 use store::Store;
@@ -220,6 +223,8 @@ struct Inner {
     storage: watch::Sender<Option<StorageProblem>>,
     /// Device and inode of the data directory when the store was opened.
     opened: (u64, u64),
+    /// Encoded previews (see [`previews`]).
+    previews: previews::PreviewCache,
 }
 
 /// The core handle. Cheap to clone.
@@ -300,6 +305,7 @@ impl JobService {
                 models: OnceLock::new(),
                 storage: watch::channel(None).0,
                 opened,
+                previews: previews::PreviewCache::new(previews::CACHE_BYTES),
             }),
         };
         let workers = worker::spawn(claims::WorkerLink::new(service.clone()), denoisers, service.settings().workers)

@@ -3,7 +3,10 @@
 //! Locking: every read takes the state lock once, briefly, and never waits for the disk
 //! (`open_result` opens the file on the blocking pool, after the lock is released).
 
+use std::collections::BTreeMap;
+
 use futures_util::stream::{self, BoxStream, StreamExt};
+use serde::Serialize;
 use tokio::sync::broadcast;
 
 use super::{entry_for, not_found, Entry, JobService};
@@ -26,6 +29,42 @@ pub struct ListFilter {
     pub after: Option<String>,
     /// Only jobs submitted by this client (`Caller::owner_filter`).
     pub owner: Option<String>,
+    /// Only jobs whose `client` is exactly this (a listing's `client` filter; within what
+    /// `owner` allows).
+    pub client: Option<String>,
+    /// Newest first (and `after` pages towards older jobs) instead of oldest first.
+    pub newest_first: bool,
+}
+
+/// The window of [`Stats::last_hour`], in milliseconds.
+pub const STATS_WINDOW_MS: i64 = 3_600_000;
+
+/// Totals over the jobs a caller may see (`GET /v1/stats`).
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Stats {
+    /// Jobs in the store.
+    pub jobs: usize,
+    /// Every state, with 0 for the empty ones.
+    pub by_state: BTreeMap<&'static str, usize>,
+    /// Queued jobs by priority class, with 0 for the empty ones.
+    pub queued_by_priority: BTreeMap<&'static str, usize>,
+    pub last_hour: Throughput,
+}
+
+/// What finished in the last [`STATS_WINDOW_MS`].
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Throughput {
+    pub window_seconds: u64,
+    pub succeeded: usize,
+    pub failed: usize,
+    pub cancelled: usize,
+    /// Frames denoised in the window: as it is an hour, frames per hour.
+    pub frames_per_hour: usize,
+    /// Megapixels of those frames.
+    pub megapixels: f64,
+    /// Run time (the `total` timing: decode to result on disk, queue excluded) per megapixel
+    /// over those frames; `None` when none finished.
+    pub mean_seconds_per_megapixel: Option<f64>,
 }
 
 impl JobService {
@@ -35,8 +74,8 @@ impl JobService {
         Ok(self.status_of(&st, entry))
     }
 
-    /// Jobs in submission order, filtered; `after` is the `next_page_token` of the
-    /// previous page.
+    /// Jobs in submission order (or its reverse: `newest_first`), filtered; `after` is the
+    /// `next_page_token` of the previous page.
     pub fn list(&self, filter: &ListFilter) -> Result<(Vec<JobStatus>, Option<String>)> {
         let after = match filter.after.as_deref() {
             None | Some("") => None,
@@ -58,18 +97,72 @@ impl JobService {
             .values()
             .filter(|e| {
                 let r = &e.record;
-                after.is_none_or(|a| r.seq > a)
+                after.is_none_or(|a| if filter.newest_first { r.seq < a } else { r.seq > a })
                     && filter.owner.as_deref().is_none_or(|o| crate::auth::owns(o, r.client.as_deref()))
                     && filter.state.is_none_or(|s| r.state == s)
                     && filter.priority.is_none_or(|p| r.options.priority == p)
                     && filter.label.as_deref().is_none_or(|l| r.options.label.as_deref() == Some(l))
+                    && filter.client.as_deref().is_none_or(|c| r.client.as_deref() == Some(c))
             })
             .collect();
-        matching.sort_by_key(|e| e.record.seq);
+        matching.sort_unstable_by_key(|e| e.record.seq);
+        if filter.newest_first {
+            matching.reverse();
+        }
         let more = matching.len() > limit;
         matching.truncate(limit);
         let next = if more { matching.last().map(|e| e.record.seq.to_string()) } else { None };
         Ok((matching.into_iter().map(|e| self.status_of(&st, e)).collect(), next))
+    }
+
+    /// Totals and the last hour's throughput over the jobs of `owner` (every job: `None`).
+    pub fn stats(&self, owner: Option<&str>) -> Stats {
+        let since = self.now() - STATS_WINDOW_MS;
+        let mut by_state: BTreeMap<&'static str, usize> = JobState::ALL.iter().map(|s| (s.name(), 0)).collect();
+        let mut queued_by_priority: BTreeMap<&'static str, usize> =
+            Priority::ALL.iter().map(|p| (p.name(), 0)).collect();
+        let (mut jobs, mut succeeded, mut failed, mut cancelled) = (0, 0, 0, 0);
+        let (mut megapixels, mut seconds) = (0.0f64, 0.0f64);
+        let st = self.lock();
+        for entry in st.jobs.values() {
+            let r = &entry.record;
+            if !owner.is_none_or(|o| crate::auth::owns(o, r.client.as_deref())) {
+                continue;
+            }
+            jobs += 1;
+            *by_state.entry(r.state.name()).or_default() += 1;
+            if r.state == JobState::Queued {
+                *queued_by_priority.entry(r.options.priority.name()).or_default() += 1;
+            }
+            if r.finished_at_ms.is_none_or(|t| t <= since) {
+                continue;
+            }
+            match r.state {
+                JobState::Succeeded => {
+                    succeeded += 1;
+                    megapixels += f64::from(r.width) * f64::from(r.height) / 1e6;
+                    seconds += r.timings.map_or(0.0, |t| t.total) / 1e3;
+                }
+                JobState::Failed => failed += 1,
+                JobState::Cancelled => cancelled += 1,
+                JobState::Queued | JobState::Running => {}
+            }
+        }
+        drop(st);
+        Stats {
+            jobs,
+            by_state,
+            queued_by_priority,
+            last_hour: Throughput {
+                window_seconds: (STATS_WINDOW_MS / 1000) as u64,
+                succeeded,
+                failed,
+                cancelled,
+                frames_per_hour: succeeded,
+                megapixels,
+                mean_seconds_per_megapixel: (megapixels > 0.0).then(|| seconds / megapixels),
+            },
+        }
     }
 
     /// The current status and a receiver of every later event, taken atomically.

@@ -10,6 +10,9 @@
 //!   jobs/<id>/reference.exr
 //!   jobs/<id>/result.json  the finished record, written just before result.exr
 //!   jobs/<id>/result.exr   the denoised frame
+//!   jobs/<id>/preview-input.exr, preview-reference.exr
+//!                          the colour of the uploaded frames (half float, R,G,B), kept
+//!                          for the dashboard's previews once the uploads are removed
 //!   quarantine/<id>.<ms>/  what recovery could not account for, kept for inspection
 //!   jobs.redb.damaged-<ms> a database that could not be opened, kept for inspection
 //! ```
@@ -325,6 +328,11 @@ impl Store {
 
     pub fn summary_path(&self, id: &str) -> PathBuf {
         self.job_dir(id).join("result.json")
+    }
+
+    /// The kept colour of an upload (`which`: `input` or `reference`), for previews.
+    pub fn preview_source_path(&self, id: &str, which: &str) -> PathBuf {
+        self.job_dir(id).join(format!("preview-{which}.exr"))
     }
 
     /// Moves `dir` into the quarantine folder (as `<name>.<ms>`), where nothing removes

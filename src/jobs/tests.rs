@@ -539,3 +539,210 @@ async fn deleting_a_running_job_removes_it_and_its_files_when_the_run_ends() {
     assert_eq!(h.service.storage_problem(), None, "a deleted job's missing directory is not a storage fault");
     h.stop();
 }
+
+/// The size and the 8-bit RGB pixels of a PNG.
+fn decode_png(bytes: &[u8]) -> ((u32, u32), Vec<u8>) {
+    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes)).read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    buf.truncate(info.buffer_size());
+    ((info.width, info.height), buf)
+}
+
+#[tokio::test(start_paused = true)]
+async fn previews_come_from_the_uploads_then_from_what_a_succeeded_job_keeps() {
+    use crate::preview::{Region, Spec};
+    let h = Harness::start(settings(8), Gate::closed()).await;
+    let spec = Spec::default();
+    let preview = |id: &str, caller: &Caller, image: PreviewImage, spec: Spec| {
+        let (service, id, caller) = (h.service.clone(), id.to_string(), caller.clone());
+        async move { service.preview(&id, &caller, image, spec).await }
+    };
+    let running = h.submit_new(64, options(Priority::Normal)).await;
+    h.until_state(&running, JobState::Running).await;
+    let queued = h.submit_new(40, options(Priority::Normal)).await;
+
+    // Unfinished: the input from its upload; no result yet; no reference was sent.
+    let png = preview(&queued, &ops(), PreviewImage::Input, spec).await.unwrap();
+    assert_eq!(decode_png(&png).0, (40, 16));
+    let e = preview(&running, &ops(), PreviewImage::Result, spec).await.unwrap_err();
+    assert!(matches!(&e, Error::Conflict(m) if m.contains("once it has succeeded")), "{e:?}");
+    let e = preview(&running, &ops(), PreviewImage::Reference, spec).await.unwrap_err();
+    assert!(matches!(&e, Error::NotFound(m) if m.contains("without a reference")), "{e:?}");
+    // Another client's job answers like a missing one.
+    let other = Caller { id: ClientId("token:other".into()), scope: crate::auth::Scope::Submit, metrics: false };
+    let e = preview(&queued, &other, PreviewImage::Input, spec).await.unwrap_err();
+    assert!(matches!(&e, Error::NotFound(m) if m == &format!("no job {queued}")), "{e:?}");
+    // A cancelled job keeps nothing of its upload.
+    h.service.cancel(&queued, &ops()).await.unwrap();
+    let e = preview(&queued, &ops(), PreviewImage::Input, spec).await.unwrap_err();
+    assert!(matches!(&e, Error::NotFound(m) if m.contains("only a succeeded job keeps it")), "{e:?}");
+
+    // Succeeded: the colour the worker decoded is kept for the input's previews.
+    h.gate.open();
+    h.until_state(&running, JobState::Succeeded).await;
+    let dir = h.dir.path().join("jobs").join(&running);
+    // (The upload itself is removed just after the terminal event.)
+    assert!(dir.join("preview-input.exr").is_file());
+    assert!(!dir.join("preview-reference.exr").exists());
+    let (size, before) = decode_png(&preview(&running, &ops(), PreviewImage::Input, spec).await.unwrap());
+    let (size_after, after) = decode_png(&preview(&running, &ops(), PreviewImage::Result, spec).await.unwrap());
+    assert_eq!((size, size_after), ((64, 16), (64, 16)));
+    // The fake denoiser returns the input's colour: the two agree up to the kept copy's
+    // half floats.
+    assert!(before.iter().zip(&after).all(|(a, b)| a.abs_diff(*b) <= 1));
+    assert!(before.iter().any(|v| *v > 0), "not a black picture");
+    // Brighter with exposure; a region at full resolution; a smaller size.
+    let (_, bright) =
+        decode_png(&preview(&running, &ops(), PreviewImage::Result, Spec { exposure: 2.0, ..spec }).await.unwrap());
+    assert!(bright.iter().zip(&after).all(|(b, a)| b >= a) && bright != after);
+    let region = Spec { region: Some(Region { x: 8, y: 4, width: 10, height: 6 }), ..spec };
+    let (size, cut) = decode_png(&preview(&running, &ops(), PreviewImage::Result, region).await.unwrap());
+    assert_eq!(size, (10, 6));
+    assert_eq!(&cut[..30], &after[(4 * 64 + 8) * 3..(4 * 64 + 18) * 3], "the region's first row, unscaled");
+    let small = preview(&running, &ops(), PreviewImage::Result, Spec { max_size: 16, ..spec }).await.unwrap();
+    assert_eq!(decode_png(&small).0, (16, 4));
+    let outside = Spec { region: Some(Region { x: 60, y: 0, width: 10, height: 6 }), ..spec };
+    let e = preview(&running, &ops(), PreviewImage::Result, outside).await.unwrap_err();
+    assert!(matches!(&e, Error::BadRequest(m) if m.contains("not inside the 64x16 frame")), "{e:?}");
+    // Answered again from the cache, the same bytes.
+    let again = preview(&running, &ops(), PreviewImage::Result, Spec { max_size: 16, ..spec }).await.unwrap();
+    assert!(Arc::ptr_eq(&small, &again));
+    h.stop();
+}
+
+#[tokio::test(start_paused = true)]
+async fn stats_count_every_state_and_the_last_hours_throughput() {
+    let h = Harness::start(settings(8), Gate::closed()).await;
+    let a = ClientId("token:aaaa".into());
+    let done = h.submit_new(64, options(Priority::Normal)).await;
+    h.until_state(&done, JobState::Running).await;
+    let high = match h.submit_as(&a, 32, options(Priority::High)).await.unwrap() {
+        Admitted::New(s) => s.record.id,
+        Admitted::Existing(s) => panic!("new job expected, got {}", s.record.id),
+    };
+    let low = h.submit_new(32, options(Priority::Low)).await;
+    let stats = h.service.stats(None);
+    assert_eq!((stats.jobs, stats.by_state["queued"], stats.by_state["running"]), (3, 2, 1));
+    assert_eq!((stats.queued_by_priority["high"], stats.queued_by_priority["low"]), (1, 1));
+    assert_eq!(stats.last_hour.frames_per_hour, 0);
+    assert_eq!(stats.last_hour.mean_seconds_per_megapixel, None);
+    h.service.cancel(&low, &ops()).await.unwrap();
+    h.gate.open();
+    h.until_state(&done, JobState::Succeeded).await;
+    h.until_state(&high, JobState::Succeeded).await;
+    let stats = h.service.stats(None);
+    let hour = &stats.last_hour;
+    assert_eq!((hour.succeeded, hour.cancelled, hour.frames_per_hour), (2, 1, 2));
+    assert!((hour.megapixels - (64.0 * 16.0 + 32.0 * 16.0) / 1e6).abs() < 1e-12);
+    assert!(hour.mean_seconds_per_megapixel.is_some());
+    assert_eq!(stats.by_state["succeeded"], 2);
+    // A submit token's totals count its own jobs only.
+    let own = h.service.stats(Some("token:aaaa"));
+    assert_eq!((own.jobs, own.last_hour.frames_per_hour), (1, 1));
+    // Listing: newest first, and by client.
+    let newest = ListFilter { newest_first: true, limit: Some(2), ..Default::default() };
+    let (page, next) = h.service.list(&newest).unwrap();
+    assert_eq!(page.iter().map(|s| s.record.id.as_str()).collect::<Vec<_>>(), [low.as_str(), high.as_str()]);
+    let (rest, _) = h.service.list(&ListFilter { after: next, ..newest }).unwrap();
+    assert_eq!(rest.iter().map(|s| s.record.id.as_str()).collect::<Vec<_>>(), [done.as_str()]);
+    let mine = ListFilter { client: Some("token:aaaa".into()), ..Default::default() };
+    assert_eq!(h.service.list(&mine).unwrap().0.len(), 1);
+    // An hour later nothing finished in the window; the totals stay.
+    tokio::time::advance(Duration::from_secs(3601)).await;
+    let stats = h.service.stats(None);
+    assert_eq!((stats.jobs, stats.last_hour.frames_per_hour, stats.last_hour.cancelled), (3, 0, 0));
+    h.stop();
+}
+
+/// The dashboard with 10,000 jobs in the store: the calls its queue view makes on every
+/// refresh (the totals, one page of 50 jobs, newest first, with or without filters), made
+/// through the HTTP router, stay paginated and answer quickly. The jobs are put straight
+/// into the core's state (writing 10,000 records durably takes minutes); the one worker is
+/// held by a running job so that none of them is claimed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ten_thousand_jobs_answer_the_dashboards_calls_in_pages_and_quickly() {
+    use axum::body::Body;
+    use http_body_util::BodyExt;
+    use tower::ServiceExt;
+
+    const JOBS: u64 = 10_000;
+    let h = Harness::start(settings(JOBS as usize + 8), Gate::closed()).await;
+    let held = h.submit_new(64, options(Priority::Normal)).await;
+    h.until_state(&held, JobState::Running).await;
+    let now = now_ms();
+    {
+        let mut st = h.service.lock();
+        for i in 0..JOBS {
+            let state = JobState::ALL[(i % 5) as usize];
+            let mut r = record(&format!("job-{i:05}"), 100 + i, state);
+            r.options.priority = Priority::ALL[(i % 3) as usize];
+            r.options.label = Some(format!("shot{:03}", i % 100));
+            r.client = Some(format!("token:{:012x}", i % 7));
+            if state.is_terminal() {
+                r.finished_at_ms = Some(now - i as i64 * 1000);
+            }
+            if state == JobState::Succeeded {
+                r.timings = Some(Timings { total: 250.0, ..Default::default() });
+            }
+            if state == JobState::Queued {
+                st.queue.push(r.options.priority, r.seq, r.id.clone());
+            }
+            st.jobs.insert(r.id.clone(), Entry::new(r));
+        }
+        st.next_seq = 100 + JOBS;
+    }
+    let router = crate::http::router(crate::http::AppState {
+        service: h.service.clone(),
+        tokens: Arc::new(crate::auth::Tokens::default()),
+        shutdown: tokio_util::sync::CancellationToken::new(),
+        info: Arc::new(crate::http::Info::new(serde_json::Value::Null)),
+    });
+    let get = |uri: String| {
+        let router = router.clone();
+        async move {
+            let t = std::time::Instant::now();
+            let request = axum::http::Request::get(&uri).body(Body::empty()).unwrap();
+            let response = router.oneshot(request).await.unwrap();
+            assert_eq!(response.status(), 200, "{uri}");
+            let body = response.into_body().collect().await.unwrap().to_bytes();
+            (serde_json::from_slice::<serde_json::Value>(&body).unwrap(), t.elapsed())
+        }
+    };
+    let mut slowest = Duration::ZERO;
+    let (stats, took) = get("/v1/stats".into()).await;
+    slowest = slowest.max(took);
+    assert_eq!(stats["jobs"], JOBS + 1);
+    assert_eq!(stats["by_state"]["failed"], JOBS / 5);
+    // Finished within the hour: one a second, the newest 3,600 of them.
+    let in_window = (0..3600).filter(|i| i % 5 == 2).count();
+    assert_eq!(stats["last_hour"]["succeeded"], in_window);
+
+    // Newest first, page by page, as the queue view walks them.
+    let mut token = String::new();
+    let mut seen = std::collections::HashSet::new();
+    for page in 0..5 {
+        let (list, took) = get(format!("/v1/jobs?limit=50&order=newest&page_token={token}")).await;
+        slowest = slowest.max(took);
+        let jobs = list["jobs"].as_array().unwrap();
+        assert_eq!(jobs.len(), 50, "page {page}");
+        if page == 0 {
+            assert_eq!(jobs[0]["id"], format!("job-{:05}", JOBS - 1), "the newest first");
+        }
+        assert!(jobs.iter().all(|j| seen.insert(j["id"].as_str().unwrap().to_string())), "no job twice");
+        token = list["next_page_token"].as_str().unwrap().to_string();
+    }
+    // Filtered: the queued high-priority jobs of one shot and one client.
+    let (list, took) = get("/v1/jobs?limit=50&order=newest&state=queued&priority=high&label=shot000".into()).await;
+    slowest = slowest.max(took);
+    let jobs = list["jobs"].as_array().unwrap();
+    assert!(!jobs.is_empty() && jobs.iter().all(|j| j["state"] == "queued" && j["label"] == "shot000"));
+    assert!(jobs.iter().all(|j| j["queue_position"].as_u64().is_some_and(|p| p >= 1)));
+    let (list, took) = get("/v1/jobs?limit=50&client=token:000000000003".into()).await;
+    slowest = slowest.max(took);
+    assert!(list["jobs"].as_array().unwrap().iter().all(|j| j["client"] == "token:000000000003"));
+    assert!(list["next_page_token"].is_string(), "more than a page of that client's jobs");
+    println!("slowest dashboard call over {JOBS} jobs: {slowest:?}");
+    assert!(slowest < Duration::from_millis(250), "a dashboard call took {slowest:?}");
+    h.stop();
+}

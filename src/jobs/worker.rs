@@ -106,6 +106,7 @@ fn run(link: &WorkerLink, denoiser: &mut dyn Denoiser, claim: &Claim) -> Outcome
         layers: &claim.layers,
         limits: link.settings().limits,
         channel_maps,
+        keep_colors: true,
     };
     let mut stop = Stop::No;
     let result = pipeline::run(denoiser, &request, &mut |p| {

@@ -45,7 +45,7 @@ def test_the_daemon_keeps_its_api_document(tmp_path):
         r = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=tmp_path)
         summary = r.stdout[-8000:]
         assert r.returncode == 0, summary
-        assert "Tested: 12" in summary, summary
+        assert "Tested: 14" in summary, summary
         assert "Missing test data" not in summary, summary
     finally:
         d.stop()
