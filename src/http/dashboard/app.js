@@ -400,7 +400,9 @@ async function queueView(params, view) {
 }
 
 function jobRow(job) {
-  const short = job.id.slice(0, 8);
+  // Ids are UUIDv7: the first digits are the submission time, shared by a burst of jobs;
+  // the last ones tell them apart.
+  const short = job.id.slice(-8);
   const tr = h('tr', { dataset: { id: job.id, state: job.state } },
     h('td', { class: 'id' }, h('a', { href: `#/jobs/${encodeURIComponent(job.id)}`, title: job.id, 'aria-label': `job ${job.id}` }, short)),
     h('td', {}, badge(job.state)),
