@@ -634,16 +634,22 @@ async fn a_cycles_frame_without_the_diffuse_passes_is_denoised_with_a_warning() 
     d.stop().await;
 }
 
+/// A frame's diffuse, specular, albedo, normal and depth planes under their canonical names
+/// (no variances), the twin that renderer-named frames are compared with.
+fn canonical_buffers(w: usize, h: usize) -> Vec<(String, Vec<f32>)> {
+    common::named_planes(w, h, false)
+        .into_iter()
+        .filter(|(n, _)| ["diffuse.", "specular.", "albedo.", "normal.", "depth."].iter().any(|p| n.starts_with(p)))
+        .collect()
+}
+
 /// An Arnold-named frame (beauty R,G,B,A, diffuse_direct/indirect, denoise_albedo, N, Z) is
 /// denoised through the Arnold preset, as its canonical twin is; one without its depth AOV
 /// is refused naming the AOVs Arnold must write.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_arnold_named_frame_is_denoised_through_its_preset() {
     let (w, h) = (40, 24);
-    let canonical: Vec<(String, Vec<f32>)> = common::named_planes(w, h, false)
-        .into_iter()
-        .filter(|(n, _)| ["diffuse.", "specular.", "albedo.", "normal.", "depth."].iter().any(|p| n.starts_with(p)))
-        .collect();
+    let canonical = canonical_buffers(w, h);
     let get = |n: &str| canonical.iter().find(|(k, _)| k == n).unwrap().1.clone();
     let mut arnold: Vec<(String, Vec<f32>)> = Vec::new();
     for (c, axis) in ["R", "G", "B"].into_iter().zip(["X", "Y", "Z"]) {
@@ -687,10 +693,7 @@ async fn an_arnold_named_frame_is_denoised_through_its_preset() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn channel_maps_from_the_config_file_and_the_job_read_a_studio_s_names() {
     let (w, h) = (40, 24);
-    let canonical: Vec<(String, Vec<f32>)> = common::named_planes(w, h, false)
-        .into_iter()
-        .filter(|(n, _)| ["diffuse.", "specular.", "albedo.", "normal.", "depth."].iter().any(|p| n.starts_with(p)))
-        .collect();
+    let canonical = canonical_buffers(w, h);
     let get = |n: &str| canonical.iter().find(|(k, _)| k == n).unwrap().1.clone();
     let mut studio: Vec<(String, Vec<f32>)> = vec![("dist".into(), get("depth.Z"))];
     for (c, axis) in ["R", "G", "B"].into_iter().zip(["X", "Y", "Z"]) {
