@@ -435,3 +435,21 @@ fn parts_that_start_at_different_points_are_refused() {
     let err = Frame::from_exr_bytes(&bytes.into_inner(), &Limits::default()).unwrap_err();
     assert!(matches!(err, FrameError::PartOrigins { origin: (0, -2), expected: (0, 0), .. }), "{err}");
 }
+
+#[test]
+fn a_clone_shares_its_planes_until_one_buffer_is_changed() {
+    let frame = mcdenoise::engine::synthetic_frame(16, 8, true);
+    let mut copy = frame.clone();
+    copy.planes_mut(Buffer::Diffuse)[0][5] = 42.0;
+    // The changed buffer is the clone's own; the others are still the original's memory.
+    assert_eq!(copy.plane(Buffer::Diffuse, 0)[5], 42.0);
+    assert_ne!(frame.plane(Buffer::Diffuse, 0)[5], 42.0);
+    assert_ne!(copy.plane(Buffer::Diffuse, 0).as_ptr(), frame.plane(Buffer::Diffuse, 0).as_ptr());
+    for b in [Buffer::Albedo, Buffer::Normal, Buffer::Covariance, Buffer::SpecularVariance] {
+        assert_eq!(copy.plane(b, 0).as_ptr(), frame.plane(b, 0).as_ptr(), "{}", b.name());
+    }
+    // Taking a shared buffer out copies it; the original keeps its planes.
+    let taken = copy.take(Buffer::Albedo).unwrap();
+    assert_eq!(taken[0], frame.plane(Buffer::Albedo, 0));
+    assert!(!copy.has(Buffer::Albedo) && frame.has(Buffer::Albedo));
+}

@@ -241,13 +241,14 @@ impl Engine {
         let stats = FrameStats::of(frame);
         let tiles = tile_grid(frame.width, frame.height, plan.tile);
         let (w, h) = (frame.width, frame.height);
-        let mut filtered = [vec![0f32; 3 * w * h], vec![0f32; 3 * w * h]];
+        // The filtered diffuse and specular, turned into the outputs in place below.
+        let mut filtered: [[Plane; 3]; 2] = std::array::from_fn(|_| std::array::from_fn(|_| vec![0f32; w * h]));
 
         for (index, core) in tiles.iter().enumerate() {
             let region = expand(*core, plan.halo, w, h);
             let out = run_region(model, &self.pool, frame, &stats, region, *core, plan.multiple, &mut timings, true)?;
             for (slot, core_out) in out.iter().enumerate() {
-                scatter(core_out, *core, w, h, &mut filtered[slot]);
+                scatter(core_out, *core, w, &mut filtered[slot]);
             }
             if !on_tile(Progress { tiles_done: index + 1, tiles_total: tiles.len() }) && index + 1 < tiles.len() {
                 return Err(EngineError::Cancelled);
@@ -257,13 +258,16 @@ impl Engine {
         // The inverse transforms, saturated: a finite input never gives a non-finite output
         // (a filtered diffuse value times an albedo near the float maximum would overflow).
         let t = Instant::now();
-        let n = w * h;
         let albedo = frame.planes(Buffer::Albedo);
-        let diffuse: [Plane; 3] = std::array::from_fn(|c| {
-            filtered[0][c * n..][..n].iter().zip(&albedo[c]).map(|(d, a)| saturate(d * (a.max(0.0) + EPS))).collect()
-        });
-        let specular: [Plane; 3] =
-            std::array::from_fn(|c| filtered[1][c * n..][..n].iter().map(|s| saturate(s.exp_m1())).collect());
+        let [mut diffuse, mut specular] = filtered;
+        for (plane, albedo) in diffuse.iter_mut().zip(albedo) {
+            for (d, a) in plane.iter_mut().zip(albedo) {
+                *d = saturate(*d * (a.max(0.0) + EPS));
+            }
+        }
+        for s in specular.iter_mut().flatten() {
+            *s = saturate(s.exp_m1());
+        }
         let color: [Plane; 3] =
             std::array::from_fn(|c| diffuse[c].iter().zip(&specular[c]).map(|(d, s)| saturate(d + s)).collect());
         timings.reconstruction += t.elapsed();
@@ -533,12 +537,11 @@ pub fn expand(core: Rect, halo: usize, w: usize, h: usize) -> Rect {
 }
 
 /// Copies a core's `[3][core.h][core.w]` into frame-sized `[3][h][w]` planes.
-fn scatter(core_out: &[f32], core: Rect, w: usize, h: usize, dst: &mut [f32]) {
-    let (n, cn) = (w * h, core.pixels());
-    for c in 0..3 {
+fn scatter(core_out: &[f32], core: Rect, w: usize, dst: &mut [Plane; 3]) {
+    let cn = core.pixels();
+    for (c, plane) in dst.iter_mut().enumerate() {
         for row in 0..core.h {
-            dst[c * n + (core.y + row) * w + core.x..][..core.w]
-                .copy_from_slice(&core_out[c * cn + row * core.w..][..core.w]);
+            plane[(core.y + row) * w + core.x..][..core.w].copy_from_slice(&core_out[c * cn + row * core.w..][..core.w]);
         }
     }
 }

@@ -13,6 +13,8 @@ pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, 
 pub use layout::{Buffer, BUFFER_COUNT};
 pub use presets::ChannelMaps;
 
+use std::sync::Arc;
+
 use serde::Serialize;
 
 /// One channel of a frame, row-major, `width * height` samples.
@@ -92,8 +94,10 @@ pub struct Frame {
     pub width: usize,
     pub height: usize,
     /// Indexed by `Buffer as usize`: 3 planes for colors, 1 or 3 for variances, 1 for depth
-    /// and covariance.
-    buffers: [Option<Vec<Plane>>; BUFFER_COUNT],
+    /// and covariance. Shared between clones: a clone costs no pixels until a buffer is
+    /// changed ([`Frame::planes_mut`] copies that buffer alone), so the engine's firefly
+    /// handling copies only the diffuse and specular of a 4K frame, not all of it.
+    buffers: [Option<Arc<Vec<Plane>>>; BUFFER_COUNT],
     pub sanitized: Sanitized,
     /// Variance buffers the file did not have, taken as 0
     /// ([`Frame::fill_missing_variances`]).
@@ -121,7 +125,7 @@ impl Frame {
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
         check_required(&names, required, maps)?;
         let resolved = layout::resolve(&names);
-        let mut buffers: [Option<Vec<Plane>>; BUFFER_COUNT] = Default::default();
+        let mut buffers: [Option<Arc<Vec<Plane>>>; BUFFER_COUNT] = Default::default();
         let mut sanitized = Sanitized::default();
         for buffer in Buffer::ALL {
             let Some(indices) = &resolved[buffer as usize] else { continue };
@@ -141,7 +145,7 @@ impl Frame {
                 sanitized.total += count;
                 sanitized.by_buffer.insert(buffer.name().to_string(), count);
             }
-            buffers[buffer as usize] = Some(taken);
+            buffers[buffer as usize] = Some(Arc::new(taken));
         }
         Ok(Frame { width, height, buffers, sanitized, missing_variances: Vec::new(), warnings })
     }
@@ -160,7 +164,7 @@ impl Frame {
             if self.has(var) || !self.has(base) {
                 continue;
             }
-            self.buffers[var as usize] = Some(vec![vec![0f32; n]]);
+            self.buffers[var as usize] = Some(Arc::new(vec![vec![0f32; n]]));
             self.missing_variances.push(var.name().to_string());
         }
     }
@@ -180,6 +184,7 @@ impl Frame {
     pub fn planes(&self, buffer: Buffer) -> &[Plane] {
         self.buffers[buffer as usize]
             .as_deref()
+            .map(Vec::as_slice)
             .unwrap_or_else(|| panic!("buffer {} is absent; check Frame::has first", buffer.name()))
     }
 
@@ -189,13 +194,15 @@ impl Frame {
         &planes[c.min(planes.len() - 1)]
     }
 
-    /// All planes of a buffer, to change them in place (e.g. the engine's firefly handling).
+    /// All planes of a buffer, to change them in place (e.g. the engine's firefly handling);
+    /// a buffer shared with a clone is copied first.
     ///
     /// # Panics
     /// If the buffer is absent.
     pub fn planes_mut(&mut self, buffer: Buffer) -> &mut [Plane] {
         self.buffers[buffer as usize]
-            .as_deref_mut()
+            .as_mut()
+            .map(|planes| Arc::make_mut(planes).as_mut_slice())
             .unwrap_or_else(|| panic!("buffer {} is absent; check Frame::has first", buffer.name()))
     }
 
@@ -206,7 +213,7 @@ impl Frame {
 
     /// Takes a buffer's planes out of the frame, which then lacks it.
     pub fn take(&mut self, buffer: Buffer) -> Option<Vec<Plane>> {
-        self.buffers[buffer as usize].take()
+        self.buffers[buffer as usize].take().map(|planes| Arc::unwrap_or_clone(planes))
     }
 
     /// The frame's total radiance: `R,G,B` if present, else diffuse + specular.
