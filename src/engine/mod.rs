@@ -541,7 +541,8 @@ fn scatter(core_out: &[f32], core: Rect, w: usize, dst: &mut [Plane; 3]) {
     let cn = core.pixels();
     for (c, plane) in dst.iter_mut().enumerate() {
         for row in 0..core.h {
-            plane[(core.y + row) * w + core.x..][..core.w].copy_from_slice(&core_out[c * cn + row * core.w..][..core.w]);
+            plane[(core.y + row) * w + core.x..][..core.w]
+                .copy_from_slice(&core_out[c * cn + row * core.w..][..core.w]);
         }
     }
 }

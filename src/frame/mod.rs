@@ -213,7 +213,7 @@ impl Frame {
 
     /// Takes a buffer's planes out of the frame, which then lacks it.
     pub fn take(&mut self, buffer: Buffer) -> Option<Vec<Plane>> {
-        self.buffers[buffer as usize].take().map(|planes| Arc::unwrap_or_clone(planes))
+        self.buffers[buffer as usize].take().map(Arc::unwrap_or_clone)
     }
 
     /// The frame's total radiance: `R,G,B` if present, else diffuse + specular.

@@ -185,10 +185,7 @@ impl ChannelMap {
 
     /// A job's inline map: `key=expr` pairs separated by `;` (`variances.diffuseVariance=...`
     /// for variances).
-    pub fn inline(text: &str) -> Result<ChannelMap, String> {
-        if text.len() > MAX_INLINE_MAP_BYTES {
-            return Err(format!("channel_map is {} bytes, at most {MAX_INLINE_MAP_BYTES} are accepted", text.len()));
-        }
+    fn inline(text: &str) -> Result<ChannelMap, String> {
         let mut spec = ChannelMapSpec::default();
         for pair in text.split(';').map(str::trim).filter(|p| !p.is_empty()) {
             let (key, value) = pair
@@ -329,7 +326,11 @@ impl ChannelMaps {
 
     /// The maps a job reads its frame with: `""` or `auto`, every map; a name, that map
     /// alone; `key=AOVs;...`, the job's own map.
+    /// A choice longer than [`MAX_INLINE_MAP_BYTES`] is refused, whatever it is.
     pub fn choose(&self, choice: &str) -> Result<ChannelMaps, String> {
+        if choice.len() > MAX_INLINE_MAP_BYTES {
+            return Err(format!("channel_map is {} bytes, at most {MAX_INLINE_MAP_BYTES} are accepted", choice.len()));
+        }
         let choice = choice.trim();
         if choice.is_empty() || choice.eq_ignore_ascii_case("auto") {
             return Ok(self.clone());

@@ -130,9 +130,8 @@ impl JobService {
                 return Err(Error::BadRequest(format!("no `{v}` model is loaded (loaded: {})", loaded.join(", "))));
             }
         }
-        if let Some(map) = &options.channel_map {
-            self.inner.settings.channel_maps.choose(map).map_err(Error::BadRequest)?;
-        }
+        // An unknown or malformed channel map is refused before the upload is read.
+        self.channel_maps(&options)?;
         let scoped = options.idempotency_key.as_deref().map(|k| scoped_key(Some(client.as_str()), k));
         if let (Some(key), Some(scoped)) = (&options.idempotency_key, &scoped) {
             if let Some(id) = st.keys.get(scoped) {

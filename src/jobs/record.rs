@@ -163,13 +163,6 @@ impl JobOptions {
         if self.channel_map.as_deref().is_some_and(|m| m.trim().is_empty() || m.trim().eq_ignore_ascii_case("auto")) {
             self.channel_map = None;
         }
-        if let Some(m) = self.channel_map.as_deref().filter(|m| m.len() > crate::frame::presets::MAX_INLINE_MAP_BYTES) {
-            return Err(format!(
-                "channel_map is {} bytes, at most {} are accepted",
-                m.len(),
-                crate::frame::presets::MAX_INLINE_MAP_BYTES
-            ));
-        }
         for (what, v) in [("label", &mut self.label), ("idempotency_key", &mut self.idempotency_key)] {
             if v.as_deref() == Some("") {
                 *v = None;
