@@ -1,21 +1,32 @@
-"""Every metric the Grafana dashboard, the HPA and the prometheus-adapter rule refer to is
+"""Every metric the Grafana dashboard, the HPAs and the prometheus-adapter rules refer to is
 exported by the daemon's /metrics (scraped from a running daemon), with the label values
-they select on."""
+they select on. The shared-mode metrics of the scale-out overlay's HPA and the adapter's
+external rule are exported by a daemon in shared mode only: they are checked against a
+shared-mode daemon on a local nats-server where the binary has shared mode and
+nats-server is installed, and against the metrics docs/deploy.md documents for shared mode
+always."""
 
 from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
+import time
+import urllib.error
+import urllib.request
 
 import pytest
 import yaml
 
-from conftest import ROOT
+from conftest import ROOT, free_port
+from test_dockerfile import serve_env_vars
+from test_k8s import shared_mode_docs
 
 DASHBOARD = ROOT / "deploy" / "grafana" / "mcdenoise-dashboard.json"
 ADAPTER = ROOT / "deploy" / "prometheus-adapter" / "rules.yaml"
 HPA = ROOT / "deploy" / "k8s" / "base" / "hpa.yaml"
+SCALE_OUT_HPA = ROOT / "deploy" / "k8s" / "overlays" / "scale-out" / "hpa-patch.yaml"
 # Labels Prometheus adds to every target, not the daemon.
 TARGET_LABELS = {"namespace", "pod", "job", "instance", "service", "container", "endpoint", "le"}
 
@@ -99,6 +110,14 @@ def exercise(daemon, tmp_path):
     assert r.returncode == 0, r.stderr
 
 
+def shared_mode_exprs():
+    """The scale-out overlay's references: the adapter's external rules and its HPA."""
+    external = yaml.safe_load(ADAPTER.read_text())["externalRules"]
+    hpa = yaml.safe_load(SCALE_OUT_HPA.read_text())
+    return ([r["seriesQuery"] for r in external] + [r["metricsQuery"] for r in external]
+            + [m["external"]["metric"]["name"] for m in hpa["spec"]["metrics"]])
+
+
 def test_every_metric_referenced_is_exported(daemon, tmp_path):
     exercise(daemon, tmp_path)
     series = scrape(daemon)
@@ -110,6 +129,49 @@ def test_every_metric_referenced_is_exported(daemon, tmp_path):
         assert m["pods"]["metric"]["name"] in series
     # The HPA's metric is the queue gauge, one series per priority class.
     assert {s["priority"] for s in series["mcdenoise_queue_depth"]} == {"high", "normal", "low"}
+    # This daemon runs embedded: the scale-out overlay's metrics must be exported, or be
+    # shared-mode metrics that docs/deploy.md documents (exported in shared mode only;
+    # test_shared_mode_exports_its_metrics scrapes them where it can).
+    documented = shared_mode_docs()["metrics"]
+    assert {"mcdenoise_shared_queue_messages", "mcdenoise_nats_connected"} <= documented
+    assert check({**{name: [{}] for name in documented}, **series}, shared_mode_exprs()) >= 3
+
+
+def start_nats(tmp_path):
+    """A local nats-server with JetStream on loopback ports; (process, client port)."""
+    port, monitor = free_port(), free_port()
+    log = open(tmp_path / "nats.log", "wb")
+    proc = subprocess.Popen([shutil.which("nats-server"), "-js", "-a", "127.0.0.1", "-p", str(port), "-m", str(monitor),
+                             "-sd", str(tmp_path / "js")], stdout=log, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, (tmp_path / "nats.log").read_text()
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{monitor}/healthz", timeout=2):
+                return proc, port
+        except (urllib.error.URLError, OSError):
+            time.sleep(0.1)
+    proc.kill()
+    raise AssertionError("nats-server did not become healthy")
+
+
+def test_shared_mode_exports_its_metrics(make_daemon, tmp_path):
+    if "MCDENOISE_STORE" not in serve_env_vars():
+        pytest.skip("mcdenoise serve has no shared mode yet (no MCDENOISE_STORE)")
+    if not shutil.which("nats-server"):
+        pytest.skip("nats-server is not installed")
+    nats, port = start_nats(tmp_path)
+    try:
+        d = make_daemon("--store", f"nats://127.0.0.1:{port}")
+        series = scrape(d)
+        for name in shared_mode_docs()["metrics"]:
+            assert name in series, f"{name} (docs/deploy.md) is not exported in shared mode"
+        check(series, shared_mode_exprs())
+        assert {s["priority"] for s in series["mcdenoise_queue_depth"]} == {"high", "normal", "low"}
+        d.stop()
+    finally:
+        nats.terminate()
+        nats.wait(30)
 
 
 def test_the_check_catches_an_unknown_metric(daemon):
