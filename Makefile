@@ -33,6 +33,7 @@ build:
 ## The speed benchmark runs once on tiny frames so that it keeps working (figures: make bench).
 test: setup-test build
 	cargo test --release --locked
+	bash scripts/test-shared
 	cargo bench --locked --bench speed -- --quick --runs 1 --out target/bench/quick.json
 	cd training && $(PY) -m pytest -q tests
 	$(PY) -m pytest -q tests/ops
@@ -113,6 +114,15 @@ bench: setup-train build
 	cargo bench --locked --bench speed -- --models models --out docs/results/speed.json
 	$(PY) benches/oidn_speed.py target/bench/frame-1280x720.exr --out docs/results/oidn.json
 	$(PY) benches/report.py
+
+## Shared mode's throughput with 1, 2 and 3 replicas against the embedded mode, on this
+## machine (benches/scale_out.py): the shipped models on the quick speed benchmark's 320x180
+## frame. Pause background renders and training first.
+SCALE_OUT_JOBS ?= 24
+bench-scale-out: setup-test build
+	cargo bench --locked --bench speed -- --quick --runs 1 --out target/bench/quick.json
+	$(PY) benches/scale_out.py --frame target/bench/frame-320x180.exr --jobs $(SCALE_OUT_JOBS) \
+	  --models models --out docs/results/scale-out.json
 
 ## The paper's ablations (models/MODEL_CARD.md): same data, seed and steps for each variant.
 ABLATION_STEPS ?= 600

@@ -93,8 +93,27 @@ pub struct ServeArgs {
     pub probe_http: Option<SocketAddr>,
 
     // --- Storage -------------------------------------------------------------------
-    /// Directory of the job store (jobs.redb and the jobs' frames and results). Created
-    /// if missing; only one daemon may use it at a time.
+    /// Where jobs are kept: `embedded` (the data directory: one daemon) or
+    /// `nats://HOST:PORT[,nats://HOST2:PORT...]` (NATS JetStream, shared by every replica
+    /// given the same servers and --nats-prefix; docs/deploy.md, scale-out). Credentials may
+    /// be in the URL (`nats://user:password@host:4222`).
+    #[arg(long, env = "MCDENOISE_STORE", default_value = "embedded", help_heading = "Storage")]
+    pub store: String,
+    /// Shared mode: replicas of the JetStream stream, buckets and object store (the number
+    /// of NATS servers in a cluster, usually 3).
+    #[arg(long, env = "MCDENOISE_NATS_REPLICAS", default_value_t = 1, help_heading = "Storage")]
+    pub nats_replicas: usize,
+    /// Shared mode: how long a running job may go without a heartbeat (sent as its tiles
+    /// progress) before JetStream gives it to another replica.
+    #[arg(long, env = "MCDENOISE_NATS_ACK_WAIT", default_value = "30s", value_parser = parse_duration, help_heading = "Storage")]
+    pub nats_ack_wait: Duration,
+    /// Shared mode: prefix of the stream, bucket and subject names (replicas with the same
+    /// prefix share their jobs).
+    #[arg(long, env = "MCDENOISE_NATS_PREFIX", default_value = "mcdenoise", help_heading = "Storage")]
+    pub nats_prefix: String,
+    /// Directory of the job store (jobs.redb and the jobs' frames and results; in shared
+    /// mode a scratch cache of the files). Created if missing; only one daemon may use it
+    /// at a time.
     #[arg(long, env = "MCDENOISE_DATA_DIR", default_value = "mcdenoise-data", help_heading = "Storage")]
     pub data_dir: PathBuf,
     /// How long finished jobs (and their results) are kept before they are removed.
@@ -306,6 +325,28 @@ impl ServeArgs {
         if self.queue_capacity == 0 {
             bail!("--queue-capacity must be at least 1");
         }
+        if self.store != "embedded" {
+            for server in self.store.split(',') {
+                let server = server.trim();
+                if !(server.starts_with("nats://") || server.starts_with("tls://")) || server.len() <= "nats://".len() {
+                    bail!(
+                        "--store must be `embedded` or a list of NATS servers (nats://HOST:PORT,...), not `{}`",
+                        crate::jobs::shared::redact(server)
+                    );
+                }
+            }
+            if !(1..=5).contains(&self.nats_replicas) {
+                bail!("--nats-replicas must be 1 to 5 (JetStream's limit)");
+            }
+            if self.nats_ack_wait < Duration::from_secs(1) {
+                bail!("--nats-ack-wait must be at least 1s");
+            }
+            if self.nats_prefix.is_empty()
+                || !self.nats_prefix.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+            {
+                bail!("--nats-prefix must be letters, digits, `_` or `-`, not `{}`", self.nats_prefix);
+            }
+        }
         if self.workers == Some(0) {
             bail!("--workers must be at least 1");
         }
@@ -334,6 +375,16 @@ impl ServeArgs {
     }
 
     /// The settings as logged at startup (tokens redacted).
+    /// The shared store's settings; `None` in embedded mode.
+    pub fn shared_store(&self) -> Option<crate::jobs::SharedConfig> {
+        (self.store != "embedded").then(|| crate::jobs::SharedConfig {
+            servers: self.store.clone(),
+            replicas: self.nats_replicas,
+            ack_wait: self.nats_ack_wait,
+            prefix: self.nats_prefix.clone(),
+        })
+    }
+
     pub fn summary(&self) -> serde_json::Value {
         serde_json::json!({
             "http": self.http.to_string(),
@@ -342,6 +393,7 @@ impl ServeArgs {
             "max_connections": self.max_connections,
             "max_connections_per_peer": self.max_connections_per_peer,
             "data_dir": self.data_dir,
+            "store": self.shared_store().map(|c| format!("jetstream {}", crate::jobs::shared::redact(&c.servers))).unwrap_or_else(|| "embedded".into()),
             "models": self.models,
             "workers": self.workers(),
             "threads_per_worker": self.threads_per_worker(),

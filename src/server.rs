@@ -23,7 +23,8 @@ use crate::engine::{
     Denoised, Denoiser, DenoiserFactory, Engine, EngineConfig, EngineError, Fireflies, ModelInfo, Progress, Variant,
 };
 use crate::frame::Frame;
-use crate::jobs::{JobService, Settings};
+use crate::jobs::shared::{Change, Shared};
+use crate::jobs::{Backend, JobService, Settings};
 use crate::telemetry::Telemetry;
 
 /// How long the servers get to close their connections after the drain.
@@ -106,10 +107,26 @@ impl Server {
         let settings = Settings::from_args(&args);
         let denoisers = denoisers(&args, settings.engine.clone());
         let data_dir = args.data_dir.clone();
+        let (backend, feeds) = match args.shared_store() {
+            None => (Backend::Embedded, None),
+            Some(config) => {
+                let shared = Arc::new(
+                    Shared::connect(&config, SHARED_CONNECT_WAIT).await.context("cannot open the shared job store")?,
+                );
+                // Watch first, then read: no change falls between the two.
+                let changes = shared.watch().await?;
+                let progress = shared.progress_updates().await?;
+                let records = shared.load_all().await?;
+                (Backend::Shared(shared.clone(), records), Some((shared, changes, progress)))
+            }
+        };
         let (service, workers) =
-            tokio::task::spawn_blocking(move || JobService::start(&data_dir, settings, telemetry, denoisers))
+            tokio::task::spawn_blocking(move || JobService::start(&data_dir, settings, telemetry, denoisers, backend))
                 .await?
                 .context("cannot open the job store")?;
+        if let Some((shared, changes, progress)) = feeds {
+            tokio::spawn(follow_shared(service.clone(), shared, Box::pin(changes), Box::pin(progress)));
+        }
 
         let trigger = CancellationToken::new();
         let stop = CancellationToken::new();
@@ -300,6 +317,62 @@ async fn storage_checks(service: JobService, every: Duration, stop: Cancellation
         service.check_storage().await;
     })
     .await
+}
+
+/// How long the daemon waits for NATS at startup in shared mode.
+const SHARED_CONNECT_WAIT: Duration = Duration::from_secs(30);
+
+/// Shared mode: applies the other replicas' changes and progress to this one's memory, and
+/// reads the shared queue's depth for the metrics. A watch that ends (NATS went away) is
+/// opened again with a fresh read of every record.
+async fn follow_shared(
+    service: JobService,
+    shared: Arc<Shared>,
+    mut changes: std::pin::Pin<Box<dyn futures_util::Stream<Item = Change> + Send>>,
+    mut progress: std::pin::Pin<Box<dyn futures_util::Stream<Item = (String, crate::jobs::record::Progress)> + Send>>,
+) {
+    use futures_util::StreamExt;
+    let mut depth = tokio::time::interval(Duration::from_secs(2));
+    loop {
+        tokio::select! {
+            change = changes.next() => match change {
+                Some(change) => service.apply_change(change),
+                None => {
+                    tracing::warn!("the watch of the shared job records ended; opening it again");
+                    loop {
+                        tokio::time::sleep(Duration::from_secs(1)).await;
+                        let reopened = async {
+                            let watch = shared.watch().await?;
+                            let records = shared.load_all().await?;
+                            Ok::<_, crate::error::Error>((watch, records))
+                        };
+                        match reopened.await {
+                            Ok((watch, records)) => {
+                                changes = Box::pin(watch);
+                                service.resync(records);
+                                break;
+                            }
+                            Err(e) => tracing::warn!(error = %e, "cannot watch the shared job records yet"),
+                        }
+                    }
+                }
+            },
+            update = progress.next() => match update {
+                Some((id, p)) => service.apply_progress(&id, p),
+                None => match shared.progress_updates().await {
+                    Ok(p) => progress = Box::pin(p),
+                    Err(_) => tokio::time::sleep(Duration::from_secs(1)).await,
+                },
+            },
+            _ = depth.tick() => {
+                let shared = shared.clone();
+                let read = tokio::task::spawn_blocking(move || (shared.queue_messages(), shared.connected())).await;
+                if let Ok((messages, connected)) = read {
+                    service.telemetry().set_shared_queue(messages.unwrap_or(0), connected);
+                }
+            }
+        }
+    }
 }
 
 /// Removes expired jobs and fails queued jobs past their deadline, periodically.

@@ -99,6 +99,8 @@ pub struct Telemetry {
     workers_ready: Gauge,
     workers: Gauge,
     queue_capacity: Gauge,
+    shared_queue_messages: Gauge,
+    nats_connected: Gauge,
     tiles: Counter,
     sanitized: Counter,
     fireflies: Counter,
@@ -150,6 +152,8 @@ impl Telemetry {
             workers_ready: Gauge::default(),
             workers: Gauge::default(),
             queue_capacity: Gauge::default(),
+            shared_queue_messages: Gauge::default(),
+            nats_connected: Gauge::default(),
             tiles: Counter::default(),
             sanitized: Counter::default(),
             fireflies: Counter::default(),
@@ -163,6 +167,17 @@ impl Telemetry {
         };
         registry.register("queue_depth", "Jobs waiting in the queue, by priority class", t.queue_depth.clone());
         registry.register("queue_capacity", "Largest number of queued jobs admitted", t.queue_capacity.clone());
+        registry.register(
+            "shared_queue_messages",
+            "Shared mode: job messages in the JetStream work queue (waiting or running), read from JetStream; \
+             the same on every replica (0 in embedded mode)",
+            t.shared_queue_messages.clone(),
+        );
+        registry.register(
+            "nats_connected",
+            "Shared mode: 1 while this replica is connected to NATS (0 in embedded mode)",
+            t.nats_connected.clone(),
+        );
         registry.register("jobs_submitted", "Jobs accepted, by transport", t.jobs_submitted.clone());
         registry.register("jobs_finished", "Jobs that reached a terminal state, by outcome", t.jobs_finished.clone());
         registry.register("jobs_rejected", "Submissions refused, by reason", t.jobs_rejected.clone());
@@ -294,6 +309,11 @@ impl Telemetry {
 
     pub fn set_queue_depth(&self, priority: Priority, depth: usize) {
         self.queue_depth.get_or_create(&labels(&[("priority", priority.name())])).set(depth as i64);
+    }
+
+    pub fn set_shared_queue(&self, messages: u64, connected: bool) {
+        self.shared_queue_messages.set(messages as i64);
+        self.nats_connected.set(connected as i64);
     }
 
     pub fn set_queue_capacity(&self, capacity: usize) {

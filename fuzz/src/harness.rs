@@ -404,7 +404,8 @@ fn daemon() -> &'static Daemon {
         let settings = Settings::from_args(&args);
         let engines = mcdenoise::engine::Engine::factory(settings.engine.clone());
         let (service, _workers) =
-            JobService::start(dir.path(), settings, telemetry, engines).expect("the job service starts");
+            JobService::start(dir.path(), settings, telemetry, engines, mcdenoise::jobs::Backend::Embedded)
+                .expect("the job service starts");
         runtime
             .block_on(service.wait_ready(Duration::from_secs(60)))
             .expect("the tiny models load (is ORT_DYLIB_PATH set?)");

@@ -238,12 +238,14 @@ impl JobService {
             .or(self.inner.settings.default_deadline)
             .map(|d| now + d.as_millis() as i64);
         // A sequence number lost to a failed write leaves a gap, which is harmless.
-        let seq = {
+        let seq = if self.shared().is_some() {
+            super::mirror::shared_seq(ticket.id())
+        } else {
             let mut st = self.lock();
             st.next_seq += 1;
             st.next_seq - 1
         };
-        let record = JobRecord {
+        let mut record = JobRecord {
             id: ticket.id().to_string(),
             seq,
             state: JobState::Queued,
@@ -274,7 +276,23 @@ impl JobService {
             trace_parent: ticket.trace_parent.clone(),
             rev: 0,
         };
-        self.inner.store.put(&record)?;
+        if let Some(shared) = self.shared() {
+            if let Some(existing) = self.enqueue_shared(shared, ticket, &mut record)? {
+                // The idempotency key belongs to a job another replica queued meanwhile.
+                let _ = std::fs::remove_dir_all(self.inner.store.job_dir(ticket.id()));
+                let id = existing.id.clone();
+                self.apply_change(super::shared::Change::Put { record: existing, own: false });
+                let mut st = self.lock();
+                ticket.slot().release_in(&mut st);
+                if let Some(key) = &record.options.idempotency_key {
+                    st.uploading.remove(&scoped_key(record.client.as_deref(), key));
+                }
+                let entry = st.jobs.get(&id).ok_or_else(|| super::not_found(&id))?;
+                return Ok(self.status_of(&st, entry));
+            }
+        } else {
+            self.inner.store.put(&record)?;
+        }
         let mut st = self.lock();
         ticket.slot().release_in(&mut st);
         if let Some(key) = &record.options.idempotency_key {
@@ -292,6 +310,42 @@ impl JobService {
         let status = self.status_of(&st, entry);
         let _ = entry.events.send(JobEvent::Queued { status: Box::new(status.clone()) });
         Ok(status)
+    }
+
+    /// Shared mode's durable half of `enqueue`: the idempotency key claimed, the frames
+    /// stored, the record written, the job put on the work queue (each undone if a later
+    /// step fails). `Some(job)`: the key belongs to that job, which is the answer.
+    fn enqueue_shared(
+        &self,
+        shared: &super::shared::SharedRef,
+        ticket: &Ticket,
+        record: &mut JobRecord,
+    ) -> Result<Option<JobRecord>> {
+        let id = record.id.clone();
+        let scoped = record.options.idempotency_key.as_deref().map(|k| scoped_key(record.client.as_deref(), k));
+        if let Some(scoped) = &scoped {
+            if let Some(other) = shared.claim_key(scoped, &id)? {
+                if let Some(existing) = shared.get(&other)? {
+                    return Ok(Some(existing));
+                }
+            }
+        }
+        let store = &self.inner.store;
+        let stored = shared
+            .upload(&id, "input.exr", &store.input_path(&id))
+            .and_then(|()| match ticket.has_reference() {
+                true => shared.upload(&id, "reference.exr", &store.reference_path(&id)),
+                false => Ok(()),
+            })
+            .and_then(|()| shared.put(record))
+            .and_then(|()| shared.publish(&id, record.options.priority));
+        if let Err(e) = stored {
+            if let Err(undo) = shared.remove(&[(id.as_str(), scoped)]) {
+                tracing::warn!(job_id = id.as_str(), error = %undo, "cannot undo a submission that was not queued");
+            }
+            return Err(e);
+        }
+        Ok(None)
     }
 
     /// Gives back the place and the idempotency key of an admission that was not queued.

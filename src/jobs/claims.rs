@@ -113,6 +113,9 @@ impl WorkerLink {
     /// are told to stop or drain (`None`). Queued jobs past their deadline fail on the way.
     pub fn next_job(&self) -> Option<Claim> {
         let s = &self.service;
+        if s.shared().is_some() {
+            return s.next_shared(self);
+        }
         loop {
             let overdue = {
                 let mut st = s.lock();
@@ -157,7 +160,7 @@ impl WorkerLink {
     }
 
     /// Marks a popped job running (in memory) and describes it for the worker.
-    fn claim(&self, st: &mut super::State, id: &str, now: i64) -> Claim {
+    pub(super) fn claim(&self, st: &mut super::State, id: &str, now: i64) -> Claim {
         let s = &self.service;
         let entry = st.jobs.get_mut(id).expect("popped from the queue");
         let r = &mut entry.record;
@@ -211,6 +214,11 @@ impl WorkerLink {
             entry.record.progress = progress;
             let _ = entry.events.send(JobEvent::Progress(progress));
         }
+        drop(st);
+        if let Some(shared) = s.shared() {
+            shared.heartbeat(id);
+            shared.publish_progress(id, progress);
+        }
         s.inner.telemetry.tile_done();
     }
 
@@ -218,6 +226,15 @@ impl WorkerLink {
     pub fn finish(&self, claim: Claim, outcome: Outcome) {
         let s = &self.service;
         let id = claim.id.as_str();
+        if s.shared().is_some() && s.lock().jobs.get(id).is_some_and(|e| e.record.attempts != claim.attempt) {
+            // Another replica took the job over while this run went on: its end is not this
+            // run's to write.
+            s.settle_message(id, claim.attempt, None);
+            self.release(claim);
+            return;
+        }
+        let attempt = claim.attempt;
+        let mut requeue_after = None;
         let ending = match outcome {
             Outcome::Interrupted => Ok(None),
             Outcome::StorageFault(message) => Err(message),
@@ -229,17 +246,31 @@ impl WorkerLink {
             Ok(None) => s.requeue(id),
             Ok(Some(ending)) => {
                 let settled = s.settle(&s.journal(), id, ending);
-                if let Err(e) = settled {
+                match settled {
+                    Ok(_) => {}
+                    Err(crate::error::Error::Conflict(_)) => {
+                        // Changed by another replica meanwhile (cancelled, deleted or taken
+                        // over): read it again and end it as it now says.
+                        s.end_after_conflict(id, attempt);
+                    }
                     // Its end could not be written: it stays running in memory; run it again.
-                    s.retry_later(id, format!("cannot record the job's end: {e}"));
+                    Err(e) => requeue_after = s.retry_later(id, format!("cannot record the job's end: {e}")),
                 }
             }
-            Err(message) => s.retry_later(id, message),
+            Err(message) => requeue_after = s.retry_later(id, message),
         }
+        s.settle_message(id, attempt, requeue_after);
         if !s.lock().jobs.contains_key(id) {
             // Deleted while it ran: whatever it wrote goes.
             s.inner.store.remove_files(id);
         }
+        self.release(claim);
+    }
+
+    /// The end of a run, whatever became of its job: no longer counted as running.
+    pub(super) fn release(&self, claim: Claim) {
+        let s = &self.service;
+        drop(claim);
         let mut st = s.lock();
         st.running -= 1;
         s.inner.running.send_replace(st.running);
@@ -293,6 +324,9 @@ impl WorkerLink {
                 return Err(e.to_string());
             }
             return Ok(Some(Ending::Failed(JobError { code: JobErrorCode::Internal, message: e.to_string() }, None)));
+        }
+        if let Err(e) = service.share_result(id) {
+            return Err(e.to_string());
         }
         finished.timings.encode += t.elapsed().as_secs_f64() * 1e3;
         finished.timings.total = s.started.elapsed().as_secs_f64() * 1e3;

@@ -116,7 +116,13 @@ impl JobService {
         let checked = tokio::task::spawn_blocking(move || {
             let s = &service.inner;
             let (mut problem, free) = check(s.store.root(), s.opened, s.settings.min_free_bytes);
-            if problem.is_none() && service.storage_problem().is_some() {
+            if problem.is_none() && s.shared.as_ref().is_some_and(|shared| !shared.connected()) {
+                problem = Some(StorageProblem {
+                    kind: "unavailable",
+                    reason: "the shared store (NATS JetStream) is unreachable; reconnecting".into(),
+                });
+            }
+            if problem.is_none() && service.storage_problem().is_some() && s.shared.is_none() {
                 // Writes failed earlier: the database needs reopening before it takes more.
                 if let Err(e) = s.store.reopen() {
                     problem = StorageProblem::from_error(&e)

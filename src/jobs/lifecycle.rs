@@ -111,15 +111,23 @@ impl JobService {
     /// goes back into the queue) and the error is returned, so no client sees a final state
     /// that a restart could take back.
     pub(super) fn commit(&self, _journal: &Journal<'_>, prepared: Prepared) -> Result<Option<JobStatus>> {
-        let Prepared { id, from, next, event } = prepared;
+        let Prepared { id, from, mut next, event } = prepared;
         let current = self.lock().jobs.get(&id).map(|e| e.record.state);
         if current != Some(from) {
             // Deleted or ended by someone else since `prepare`.
             return Ok(None);
         }
-        if let Err(e) = self.inner.store.put(&next) {
-            tracing::error!(job_id = id.as_str(), error = %e, state = next.state.name(), "cannot persist the job's end; it stays {}", from.name());
-            self.storage_failed(&e);
+        if let Err(e) = self.write_record(&mut next) {
+            if matches!(e, Error::Conflict(_)) {
+                tracing::info!(
+                    job_id = id.as_str(),
+                    state = next.state.name(),
+                    "changed by another replica meanwhile; not ended here"
+                );
+            } else {
+                tracing::error!(job_id = id.as_str(), error = %e, state = next.state.name(), "cannot persist the job's end; it stays {}", from.name());
+                self.storage_failed(&e);
+            }
             if from == JobState::Queued {
                 let mut st = self.lock();
                 st.queue.push(next.options.priority, next.seq, id.clone());
@@ -131,7 +139,8 @@ impl JobService {
         let run_ms = next.timings.map(|t| t.total).unwrap_or(0.0);
         let mut guard = self.lock();
         let st = &mut *guard;
-        let entry = st.jobs.get_mut(&id).expect("present: deletes hold the journal");
+        // Deletes here hold the journal; only another replica's (shared mode) comes between.
+        let Some(entry) = st.jobs.get_mut(&id) else { return Ok(None) };
         entry.record = next;
         let status = JobStatus { record: entry.record.clone(), queue_position: 0 };
         if state == JobState::Cancelled {
@@ -144,6 +153,9 @@ impl JobService {
         drop(guard);
         self.inner.telemetry.job_finished(state.name());
         self.inner.store.remove_inputs(&id);
+        if let Some(shared) = self.shared() {
+            shared.remove_inputs(&id);
+        }
         match (&status.record.error, from) {
             (Some(error), JobState::Queued) => {
                 tracing::warn!(job_id = id.as_str(), code = error.code.name(), error = %error.message, "failed while queued")
@@ -169,11 +181,18 @@ impl JobService {
     /// before they are visible). Nothing if the job was deleted meanwhile.
     pub(super) fn persist(&self, id: &str) {
         let _journal = self.journal();
-        let Some(record) = self.lock().jobs.get(id).map(|e| e.record.clone()) else { return };
-        if let Err(e) = self.inner.store.put(&record) {
-            // The job still runs; after a crash it would run again, which is safe.
-            tracing::error!(job_id = id, error = %e, "cannot persist the job's state");
-            self.storage_failed(&e);
+        let Some(mut record) = self.lock().jobs.get(id).map(|e| e.record.clone()) else { return };
+        match self.write_record(&mut record) {
+            Ok(()) => {
+                if let Some(entry) = self.lock().jobs.get_mut(id) {
+                    entry.record.rev = record.rev;
+                }
+            }
+            Err(e) => {
+                // The job still runs; after a crash it would run again, which is safe.
+                tracing::error!(job_id = id, error = %e, "cannot persist the job's state");
+                self.storage_failed(&e);
+            }
         }
     }
 
@@ -200,14 +219,21 @@ impl JobService {
             next.progress = Progress::default();
             next
         };
-        if let Err(e) = self.inner.store.put(&next) {
+        let mut next = next;
+        if let Err(e) = self.write_record(&mut next) {
             tracing::error!(job_id = id, error = %e, "cannot persist the re-queued job");
             self.storage_failed(&e);
+            if self.shared().is_some() {
+                // The stored record still says running; its message, delivered again, runs it.
+                return false;
+            }
         }
         let mut st = self.lock();
         match due {
-            None => st.queue.push(next.options.priority, next.seq, next.id.clone()),
-            Some(t) => st.delayed.push((t, id.to_string())),
+            // Shared mode: the queue in memory only mirrors the shared one, whose message
+            // comes back after the pause by itself.
+            Some(t) if self.shared().is_none() => st.delayed.push((t, id.to_string())),
+            _ => st.queue.push(next.options.priority, next.seq, next.id.clone()),
         }
         if let Some(entry) = st.jobs.get_mut(id) {
             entry.record = next;
@@ -220,11 +246,12 @@ impl JobService {
     /// Puts a running job whose input could not be read or whose result could not be
     /// written for a storage reason back in the queue after a pause (1 s, doubling, at
     /// most 30 s); after [`MAX_STORAGE_FAILURES`] such runs it fails with code `storage`.
-    pub(super) fn retry_later(&self, id: &str, message: String) {
+    /// Returns the pause when the job was queued again.
+    pub(super) fn retry_later(&self, id: &str, message: String) -> Option<Duration> {
         let journal = self.journal();
         let failures = {
             let mut st = self.lock();
-            let Some(entry) = st.jobs.get_mut(id).filter(|e| e.record.state == JobState::Running) else { return };
+            let Some(entry) = st.jobs.get_mut(id).filter(|e| e.record.state == JobState::Running) else { return None };
             entry.record.storage_failures += 1;
             entry.record.storage_failures
         };
@@ -235,7 +262,7 @@ impl JobService {
                 message: format!("gave up after {failures} runs that hit a storage fault; the last: {message}"),
             };
             if self.settle(&journal, id, Ending::Failed(error, None)).is_ok() {
-                return;
+                return None;
             }
             // Not even the failure can be written: keep it queued until storage heals.
         }
@@ -245,6 +272,7 @@ impl JobService {
             tracing::warn!(job_id = id, failures, retry_in_ms = delay_ms, error = %message, "storage fault: queued again after a pause");
             self.inner.work.notify_all();
         }
+        Some(Duration::from_millis(delay_ms as u64))
     }
 
     /// Moves the delayed jobs that are due into the queue (under the caller's state lock).
@@ -281,6 +309,11 @@ impl JobService {
             let entry = st.jobs.get_mut(id).expect("found above, under the same lock");
             match entry.record.state {
                 JobState::Queued => self.prepare(&mut st, id, Ending::Cancelled),
+                JobState::Running if self.shared().is_some_and(|s| !s.holds(id)) => {
+                    drop(st);
+                    drop(journal);
+                    return self.request_cancel_elsewhere(id);
+                }
                 JobState::Running => {
                     entry.cancel.store(true, Ordering::SeqCst);
                     entry.record.cancel_requested = true;
@@ -306,9 +339,11 @@ impl JobService {
     fn delete_now(&self, id: &str, caller: &Caller) -> Result<()> {
         let journal = self.journal();
         entry_for(&self.lock(), id, caller)?;
-        self.inner.store.remove(&[id])?;
+        self.remove_records(&[id])?;
         let mut st = self.lock();
-        let entry = st.jobs.remove(id).expect("present: deletes hold the journal");
+        // Deletes here hold the journal; in shared mode the watch may have applied this
+        // very delete already (and told the watchers).
+        let Some(entry) = st.jobs.remove(id) else { return Ok(()) };
         entry.cancel.store(true, Ordering::SeqCst);
         let r = &entry.record;
         if r.state == JobState::Queued && st.queue.remove(r.options.priority, r.seq) {
@@ -337,6 +372,10 @@ impl JobService {
     }
 
     fn sweep_now(&self) -> Result<usize> {
+        if self.shared().is_some_and(|s| !s.take_lease("sweep")) {
+            // Another replica sweeps this round.
+            return Ok(0);
+        }
         let journal = self.journal();
         let now = self.now();
         let (expired, overdue) = {
@@ -359,7 +398,7 @@ impl JobService {
         };
         if !expired.is_empty() {
             let ids: Vec<&str> = expired.iter().map(String::as_str).collect();
-            self.inner.store.remove(&ids)?;
+            self.remove_records(&ids)?;
             let mut st = self.lock();
             for id in &expired {
                 if let Some(entry) = st.jobs.remove(id) {
@@ -371,8 +410,10 @@ impl JobService {
         }
         let mut failure = None;
         for prepared in overdue {
-            if let Err(e) = self.commit(&journal, prepared) {
-                failure = Some(e);
+            match self.commit(&journal, prepared) {
+                // Claimed or ended by another replica meanwhile.
+                Ok(_) | Err(Error::Conflict(_)) => {}
+                Err(e) => failure = Some(e),
             }
         }
         drop(journal);

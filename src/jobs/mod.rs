@@ -19,6 +19,9 @@
 //! - `previews`: tone-mapped PNG previews of a job's frames, cached (the dashboard).
 //! - `recovery`: the state rebuilt from the store at startup (after a crash too).
 //! - [`store`]: the redb database and the files of each job.
+//! - [`shared`]: shared mode's store on NATS JetStream (records, queue, files), and
+//!   `mirror`: the core's side of it (the state as a mirror of the shared records, claims
+//!   through the JetStream queue). [`Backend`] chooses the mode at start.
 //! - [`health`]: whether the data directory can take writes (readiness, admission).
 //! - [`queue`]: priority classes, FIFO within a class.
 //! - [`validate`]: the EXR header checks done at submission.
@@ -52,11 +55,13 @@ mod admission;
 mod claims;
 mod health;
 mod lifecycle;
+mod mirror;
 mod previews;
 mod queries;
 pub mod queue;
 pub mod record;
 mod recovery;
+pub mod shared;
 pub mod store;
 mod uploads;
 pub mod validate;
@@ -85,6 +90,7 @@ pub use previews::PreviewImage;
 pub use queries::{ListFilter, Stats, Throughput, STATS_WINDOW_MS};
 use queue::Queue;
 pub use record::*;
+pub use shared::SharedConfig;
 use store::Store;
 pub use uploads::{Sink, Ticket, UploadPart};
 
@@ -225,6 +231,17 @@ struct Inner {
     opened: (u64, u64),
     /// Encoded previews (see [`previews`]).
     previews: previews::PreviewCache,
+    /// Shared mode: the records, queue and files on NATS JetStream ([`shared`]).
+    shared: Option<shared::SharedRef>,
+}
+
+/// Where the jobs are kept.
+pub enum Backend {
+    /// The data directory: redb and the job files (the default).
+    Embedded,
+    /// NATS JetStream, shared with other replicas, and the records stored there when the
+    /// daemon started (the data directory is a scratch cache).
+    Shared(Arc<shared::Shared>, Vec<JobRecord>),
 }
 
 /// The core handle. Cheap to clone.
@@ -268,8 +285,9 @@ impl JobService {
         settings: Settings,
         telemetry: Arc<Telemetry>,
         denoisers: DenoiserFactory,
+        backend: Backend,
     ) -> Result<(JobService, Vec<std::thread::JoinHandle<()>>)> {
-        JobService::start_with_clock(data_dir, settings, telemetry, denoisers, Arc::new(now_ms))
+        JobService::start_with_clock(data_dir, settings, telemetry, denoisers, backend, Arc::new(now_ms))
     }
 
     pub(crate) fn start_with_clock(
@@ -277,12 +295,23 @@ impl JobService {
         settings: Settings,
         telemetry: Arc<Telemetry>,
         denoisers: DenoiserFactory,
+        backend: Backend,
         clock: Clock,
     ) -> Result<(JobService, Vec<std::thread::JoinHandle<()>>)> {
         let store = Store::open(data_dir)?;
         let opened = health::identity(data_dir)
             .map_err(|e| Error::storage(&format!("data directory {}", data_dir.display()), &e))?;
-        let state = recovery::recover(&store, &settings, &telemetry, clock())?;
+        let (state, shared) = match backend {
+            Backend::Embedded => (recovery::recover(&store, &settings, &telemetry, clock())?, None),
+            Backend::Shared(shared, records) => {
+                // The local files are a cache of the shared ones: start it empty.
+                let jobs = store.jobs_dir();
+                if let Err(e) = std::fs::remove_dir_all(&jobs).and_then(|()| std::fs::create_dir_all(&jobs)) {
+                    return Err(Error::storage(&format!("cannot clear the scratch directory {}", jobs.display()), &e));
+                }
+                (mirror::initial_state(records), Some(shared))
+            }
+        };
         telemetry.set_queue_capacity(settings.capacity);
         telemetry.set_workers(settings.workers, 0);
         telemetry.set_ready(false);
@@ -306,6 +335,7 @@ impl JobService {
                 storage: watch::channel(None).0,
                 opened,
                 previews: previews::PreviewCache::new(previews::CACHE_BYTES),
+                shared,
             }),
         };
         let workers = worker::spawn(claims::WorkerLink::new(service.clone()), denoisers, service.settings().workers)
@@ -337,6 +367,39 @@ impl JobService {
 
     pub fn settings(&self) -> &Settings {
         &self.inner.settings
+    }
+
+    /// Writes a record durably. Shared mode: only if the stored one is still the version
+    /// `record` was made from (else [`Error::Conflict`]), and `record.rev` becomes the new
+    /// version. Blocking.
+    fn write_record(&self, record: &mut JobRecord) -> Result<()> {
+        match &self.inner.shared {
+            Some(shared) => shared.put(record),
+            None => self.inner.store.put(record),
+        }
+    }
+
+    /// Removes the records of `ids` durably (shared mode: with their idempotency keys and
+    /// stored files). Blocking.
+    fn remove_records(&self, ids: &[&str]) -> Result<()> {
+        match &self.inner.shared {
+            Some(shared) => {
+                let jobs: Vec<(&str, Option<String>)> = {
+                    let st = self.lock();
+                    ids.iter()
+                        .map(|id| {
+                            let key = st.jobs.get(*id).and_then(|e| {
+                                let r = &e.record;
+                                r.options.idempotency_key.as_deref().map(|k| scoped_key(r.client.as_deref(), k))
+                            });
+                            (*id, key)
+                        })
+                        .collect()
+                };
+                shared.remove(&jobs)
+            }
+            None => self.inner.store.remove(ids),
+        }
     }
 
     /// The channel maps a job's frame is read with (its own choice, else every map in

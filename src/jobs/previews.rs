@@ -172,6 +172,7 @@ impl JobService {
         let id = id.to_string();
         let png = self
             .blocking(move |s| {
+                s.fetch_shared_file(&id, &name, source.path())?;
                 let rgb = source.read(&id, &s.inner.settings.limits)?;
                 let (w, h, pixels) = preview::render(&rgb, &spec).map_err(Error::BadRequest)?;
                 drop(rgb);

@@ -220,7 +220,8 @@ impl JobService {
         let path = self.inner.store.result_path(id);
         let id = id.to_string();
         let (file, len) = self
-            .blocking(move |_| {
+            .blocking(move |s| {
+                s.fetch_shared_file(&id, "result.exr", &path)?;
                 let file = std::fs::File::open(&path).map_err(|e| match e.kind() {
                     // Deleted or expired since the check above.
                     std::io::ErrorKind::NotFound => not_found(&id),

@@ -163,9 +163,15 @@ impl Harness {
         let denoisers: DenoiserFactory = Arc::new(move || {
             Ok(Box::new(FakeDenoiser { gate: g.clone(), tile: TILE, seen: s.clone() }) as Box<dyn Denoiser>)
         });
-        let (service, workers) =
-            JobService::start_with_clock(dir.path(), settings, Arc::new(Telemetry::new()), denoisers, paused_clock())
-                .unwrap();
+        let (service, workers) = JobService::start_with_clock(
+            dir.path(),
+            settings,
+            Arc::new(Telemetry::new()),
+            denoisers,
+            Backend::Embedded,
+            paused_clock(),
+        )
+        .unwrap();
         // No timeout here: under the paused clock it would fire at once.
         service.subscribe_phase().wait_for(|p| *p == Phase::Ready).await.unwrap();
         Harness { service, workers, gate, seen, dir }

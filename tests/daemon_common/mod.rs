@@ -116,6 +116,15 @@ pub fn args(data_dir: &Path, extra: &[&str]) -> Vec<String> {
     a.push(data_dir.display().to_string());
     a.push("--models".into());
     a.push(tiny_models().display().to_string());
+    // `scripts/test-shared`: the same tests with the daemon in shared mode, each daemon on
+    // a prefix of its own so that tests do not see each other's jobs.
+    if let Ok(store) = std::env::var("MCDENOISE_TEST_STORE") {
+        if !extra.contains(&"--store") {
+            static DAEMONS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+            let n = DAEMONS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            a.extend(["--store".into(), store, "--nats-prefix".into(), format!("t{}_{n}", std::process::id())]);
+        }
+    }
     a.extend(extra.iter().map(|s| s.to_string()));
     a
 }
