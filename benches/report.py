@@ -116,6 +116,25 @@ def speed_work(results: Path) -> list[str]:
     return ["", f.read_text().strip()] if f.exists() else []
 
 
+def scale_out_section(report: dict) -> list[str]:
+    """Shared mode against the embedded mode (docs/results/scale-out.json, `make bench-scale-out`)."""
+    out = ["### Scale-out: shared mode (NATS JetStream) with 1, 2 and 3 replicas", "",
+           f"Produced by `make bench-scale-out` (benches/scale_out.py): {report['results'][0]['jobs']} jobs of one "
+           f"{report['frame_bytes'] / 1e6:.1f} MB frame ({Path(report['frame']).name}, the shipped models), submitted "
+           f"round-robin at once; each replica one worker of {report['threads_per_replica']} thread on this "
+           f"{report['cores']}-core machine, every configuration started fresh (nats-server with an empty store on "
+           "loopback). Background renders and training were paused.", "",
+           "| store | replicas | jobs/s | wall (s) | mean run (ms) | per-replica efficiency |", "|---|---|---|---|---|---|"]
+    for r in report["results"]:
+        eff = f"{r['efficiency']:.2f}" if "efficiency" in r else ""
+        out.append(f"| {r['mode']} | {r['replicas']} | {r['jobs_per_s']:.2f} | {r['wall_s']:.2f} | {r['mean_run_ms']:.0f} | {eff} |")
+    out += ["", f"The queue's own overhead (shared with 1 replica against embedded, per job): "
+            f"{report['queue_overhead_ms_per_job']:.0f} ms, the frame stored in and fetched from the object store, "
+            "the result stored, the record and message exchanges. Efficiency is throughput / (replicas × the "
+            "one-replica shared throughput); past 2 replicas the 2 cores are the limit, not the queue."]
+    return out
+
+
 def quality_section(results: Path) -> list[str]:
     out = ["## Quality", "",
            f"Produced by `{EVAL_CMD}` (training/mcdenoise_train/evaluate.py): every frame denoised by `mcdenoise run` "
@@ -150,6 +169,10 @@ def main() -> int:
         oidn = results / "oidn.json"
         lines += speed_section(json.loads(speed.read_text()), json.loads(oidn.read_text()) if oidn.exists() else None)
         lines += speed_work(results)
+        lines.append("")
+    scale_out = results / "scale-out.json"
+    if scale_out.exists():
+        lines += scale_out_section(json.loads(scale_out.read_text()))
         lines.append("")
     lines += quality_section(results)
     Path(a.out).write_text("\n".join(lines) + "\n")

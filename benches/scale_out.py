@@ -73,7 +73,9 @@ class Daemon:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"the daemon exited ({self.proc.returncode}); see {self.log.name}")
+                self.log.flush()
+                tail = Path(self.log.name).read_text()[-2000:]
+                raise RuntimeError(f"the daemon exited ({self.proc.returncode}):\n{tail}")
             try:
                 if request(self.base + "/readyz").get("ready"):
                     return

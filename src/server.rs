@@ -319,6 +319,9 @@ async fn storage_checks(service: JobService, every: Duration, stop: Cancellation
     .await
 }
 
+/// How often shared mode checks its mirror of the records against the store.
+const RECONCILE_INTERVAL: Duration = Duration::from_secs(3);
+
 /// How long the daemon waits for NATS at startup in shared mode.
 const SHARED_CONNECT_WAIT: Duration = Duration::from_secs(30);
 
@@ -333,6 +336,7 @@ async fn follow_shared(
 ) {
     use futures_util::StreamExt;
     let mut depth = tokio::time::interval(Duration::from_secs(2));
+    let mut check = tokio::time::interval(RECONCILE_INTERVAL);
     loop {
         tokio::select! {
             change = changes.next() => match change {
@@ -364,6 +368,13 @@ async fn follow_shared(
                     Err(_) => tokio::time::sleep(Duration::from_secs(1)).await,
                 },
             },
+            _ = check.tick() => {
+                let service = service.clone();
+                let checked = tokio::task::spawn_blocking(move || service.reconcile()).await;
+                if let Ok(Err(e)) = checked {
+                    tracing::debug!(error = %e, "cannot check the mirror of the shared records now");
+                }
+            }
             _ = depth.tick() => {
                 let shared = shared.clone();
                 let read = tokio::task::spawn_blocking(move || (shared.queue_messages(), shared.connected())).await;

@@ -281,7 +281,7 @@ impl JobService {
                 // The idempotency key belongs to a job another replica queued meanwhile.
                 let _ = std::fs::remove_dir_all(self.inner.store.job_dir(ticket.id()));
                 let id = existing.id.clone();
-                self.apply_change(super::shared::Change::Put { record: existing, own: false });
+                self.apply_change(super::shared::Change::Put { record: Box::new(existing), own: false });
                 let mut st = self.lock();
                 ticket.slot().release_in(&mut st);
                 if let Some(key) = &record.options.idempotency_key {
@@ -300,15 +300,22 @@ impl JobService {
             st.uploading.remove(&scoped);
             st.keys.insert(scoped, record.id.clone());
         }
-        st.queue.push(record.options.priority, record.seq, record.id.clone());
         let id = record.id.clone();
-        st.jobs.insert(id.clone(), Entry::new(record));
+        // Shared mode: a worker here may have taken the job from the shared queue (and
+        // put it in memory) already; that newer state stays.
+        let fresh = !st.jobs.contains_key(&id);
+        if fresh {
+            st.queue.push(record.options.priority, record.seq, record.id.clone());
+            st.jobs.insert(id.clone(), Entry::new(record));
+        }
         self.update_depth(&st);
         self.inner.telemetry.job_submitted(ticket.transport());
         self.inner.work.notify_one();
         let entry = &st.jobs[&id];
         let status = self.status_of(&st, entry);
-        let _ = entry.events.send(JobEvent::Queued { status: Box::new(status.clone()) });
+        if fresh {
+            let _ = entry.events.send(JobEvent::Queued { status: Box::new(status.clone()) });
+        }
         Ok(status)
     }
 

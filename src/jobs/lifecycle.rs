@@ -251,7 +251,7 @@ impl JobService {
         let journal = self.journal();
         let failures = {
             let mut st = self.lock();
-            let Some(entry) = st.jobs.get_mut(id).filter(|e| e.record.state == JobState::Running) else { return None };
+            let entry = st.jobs.get_mut(id).filter(|e| e.record.state == JobState::Running)?;
             entry.record.storage_failures += 1;
             entry.record.storage_failures
         };
@@ -298,7 +298,24 @@ impl JobService {
     /// Cancels a queued job at once, or asks a running one to stop at its next tile.
     pub async fn cancel(&self, id: &str, caller: &Caller) -> Result<JobStatus> {
         let (id, caller) = (id.to_string(), caller.clone());
-        self.blocking(move |s| s.cancel_now(&id, &caller)).await
+        self.blocking(move |s| {
+            let mut tries = 0;
+            loop {
+                match s.cancel_now(&id, &caller) {
+                    // Shared mode: changed by another replica since this one last heard
+                    // (claimed, say): read it again and decide again.
+                    Err(Error::Conflict(_)) if s.shared().is_some() && tries < 5 => {
+                        tries += 1;
+                        if s.refresh(&id)?.is_none_or(|r| r.state.is_terminal()) {
+                            // Gone or ended: its answer says so.
+                            return s.cancel_now(&id, &caller);
+                        }
+                    }
+                    other => return other,
+                }
+            }
+        })
+        .await
     }
 
     fn cancel_now(&self, id: &str, caller: &Caller) -> Result<JobStatus> {

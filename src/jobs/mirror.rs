@@ -14,7 +14,8 @@
 //!
 //! Locking: as in the rest of the core; the NATS calls are made with no state lock held.
 
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::claims::Claim;
@@ -74,7 +75,7 @@ impl JobService {
     /// replaces it; this replica's own writes were applied when they were made).
     pub(crate) fn apply_change(&self, change: Change) {
         match change {
-            Change::Put { record, own } => self.apply_record(record, !own),
+            Change::Put { record, own } => self.apply_record(*record, !own),
             Change::Deleted { id, revision } => {
                 let mut st = self.lock();
                 if st.jobs.get(&id).is_some_and(|e| e.record.rev < revision) {
@@ -197,6 +198,45 @@ impl JobService {
             if path.is_file() {
                 shared.upload(id, &format!("preview-{which}.exr"), &path)?;
             }
+        }
+        Ok(())
+    }
+
+    /// Makes up for changes the watch did not deliver (it can miss one when its consumer
+    /// is recreated under load): jobs no longer stored go, stored jobs not in memory come,
+    /// and unfinished jobs are read again. Run every few seconds. Blocking.
+    pub(crate) fn reconcile(&self) -> Result<()> {
+        let shared = self.shared().expect("shared mode").clone();
+        let (last, stored) = shared.stored_ids()?;
+        let (gone, read): (Vec<String>, Vec<String>) = {
+            let st = self.lock();
+            let gone = st
+                .jobs
+                .iter()
+                .filter(|(id, e)| e.record.rev <= last && !stored.contains(*id))
+                .map(|(id, _)| id.clone())
+                .collect();
+            let unfinished = st.jobs.iter().filter(|(_, e)| !e.record.state.is_terminal()).map(|(id, _)| id.clone());
+            let missing = stored.iter().filter(|id| !st.jobs.contains_key(*id)).cloned();
+            (gone, unfinished.chain(missing).collect())
+        };
+        let mut fixed = 0;
+        {
+            let mut st = self.lock();
+            for id in &gone {
+                if st.jobs.get(id).is_some_and(|e| e.record.rev <= last) {
+                    self.forget_entry(&mut st, id);
+                    fixed += 1;
+                }
+            }
+        }
+        for id in &read {
+            let before = self.lock().jobs.get(id).map(|e| e.record.rev);
+            let after = self.refresh(id)?.map(|r| r.rev);
+            fixed += usize::from(before.is_some_and(|b| after.is_some_and(|a| a > b)) || before.is_none());
+        }
+        if fixed > 0 {
+            tracing::info!(jobs = fixed, "the watch of the shared records had missed changes; applied now");
         }
         Ok(())
     }
@@ -334,6 +374,9 @@ impl JobService {
             let claim = {
                 let mut st = self.lock();
                 let Some(entry) = st.jobs.get_mut(id) else { continue };
+                // A flag of its own for this run: an earlier run's stop (taken over, say)
+                // is not this one's; a cancellation is in the record, checked above.
+                entry.cancel = Arc::new(AtomicBool::new(false));
                 if entry.record.state == JobState::Running {
                     // Delivered again: the replica that ran it stopped.
                     entry.record.state = JobState::Queued;

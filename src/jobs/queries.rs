@@ -204,6 +204,15 @@ impl JobService {
 
     /// Opens the result of a succeeded job: the file and its size.
     pub async fn open_result(&self, id: &str, caller: &Caller) -> Result<(tokio::fs::File, u64)> {
+        let behind = self.shared().is_some() && {
+            let st = self.lock();
+            entry_for(&st, id, caller)?.record.state != JobState::Succeeded
+        };
+        if behind {
+            // Shared mode: another replica may have finished it a moment ago.
+            let id = id.to_string();
+            self.blocking(move |s| s.refresh(&id).map(|_| ())).await?;
+        }
         {
             let st = self.lock();
             let entry = entry_for(&st, id, caller)?;

@@ -48,6 +48,9 @@ use crate::error::{Error, Result};
 /// How long one NATS request may take before it counts as failed.
 const REQUEST_TIMEOUT: Duration = Duration::from_secs(10);
 
+/// How long storing or fetching one file may take.
+const TRANSFER_TIMEOUT: Duration = Duration::from_secs(600);
+
 /// How the daemon reaches JetStream (`serve --store nats://… --nats-*`).
 #[derive(Clone, Debug)]
 pub struct SharedConfig {
@@ -71,7 +74,7 @@ struct Stored {
 
 /// A change to the jobs bucket, as the watch delivers it.
 pub enum Change {
-    Put { record: JobRecord, own: bool },
+    Put { record: Box<JobRecord>, own: bool },
     Deleted { id: String, revision: u64 },
 }
 
@@ -240,8 +243,22 @@ impl Shared {
         })
     }
 
-    fn block<F: std::future::Future>(&self, f: F) -> F::Output {
-        self.rt.block_on(f)
+    /// Runs a NATS exchange to completion on the runtime from a blocking thread, failing it
+    /// after `limit` (a request in flight when the connection drops may never be answered).
+    fn block<T>(&self, limit: Duration, f: impl std::future::Future<Output = Result<T>>) -> Result<T> {
+        self.rt.block_on(async {
+            tokio::time::timeout(limit, f)
+                .await
+                .unwrap_or_else(|_| Err(unavailable("no answer", format!("after {limit:?}"))))
+        })
+    }
+
+    /// [`Shared::block`] for what may fail without consequence (acknowledgements, clean-ups).
+    fn block_quietly<T>(&self, f: impl std::future::Future<Output = T>) {
+        let _ = self.block(REQUEST_TIMEOUT, async {
+            f.await;
+            Ok(())
+        });
     }
 
     pub fn connected(&self) -> bool {
@@ -262,7 +279,7 @@ impl Shared {
         let value = self.encode(record)?;
         let id = record.id.clone();
         let expected = record.rev;
-        let written = self.block(async {
+        let written = self.block(REQUEST_TIMEOUT, async {
             if expected == 0 {
                 self.jobs.create(&id, value).await.map_err(|e| match e.kind() {
                     kv::CreateErrorKind::AlreadyExists => conflict(&id),
@@ -281,7 +298,9 @@ impl Shared {
 
     /// The stored record of `id` (its `rev` set), `None` if there is none. Blocking.
     pub fn get(&self, id: &str) -> Result<Option<JobRecord>> {
-        let entry = self.block(self.jobs.entry(id)).map_err(|e| unavailable("cannot read a job record", e))?;
+        let entry = self.block(REQUEST_TIMEOUT, async {
+            self.jobs.entry(id).await.map_err(|e| unavailable("cannot read a job record", e))
+        })?;
         match entry {
             Some(e) if matches!(e.operation, kv::Operation::Put) => Ok(Some(decode(&e.value, e.revision)?.0)),
             _ => Ok(None),
@@ -290,7 +309,7 @@ impl Shared {
 
     /// Removes the records, idempotency keys and files of jobs (`(id, scoped key)`). Blocking.
     pub fn remove(&self, jobs: &[(&str, Option<String>)]) -> Result<()> {
-        self.block(async {
+        self.block(REQUEST_TIMEOUT, async {
             for (id, key) in jobs {
                 self.jobs.purge(*id).await.map_err(|e| unavailable("cannot remove a job record", e))?;
                 if let Some(key) = key {
@@ -328,6 +347,24 @@ impl Shared {
         Ok(records)
     }
 
+    /// The jobs bucket's last revision and the ids of every job stored now (read after
+    /// it), for the periodic check of the watch. Blocking.
+    pub fn stored_ids(&self) -> Result<(u64, std::collections::HashSet<String>)> {
+        self.block(REQUEST_TIMEOUT, async {
+            let name = format!("KV_{}_jobs", self.prefix);
+            let mut stream =
+                self.js.get_stream(&name).await.map_err(|e| unavailable("cannot read the job records", e))?;
+            let last =
+                stream.info().await.map_err(|e| unavailable("cannot read the job records", e))?.state.last_sequence;
+            let mut keys = self.jobs.keys().await.map_err(|e| unavailable("cannot list the job records", e))?;
+            let mut ids = std::collections::HashSet::new();
+            while let Some(key) = keys.next().await {
+                ids.insert(key.map_err(|e| unavailable("cannot list the job records", e))?);
+            }
+            Ok((last, ids))
+        })
+    }
+
     /// Changes to the jobs bucket from now on (every replica's, this one's marked `own`).
     /// Async.
     pub async fn watch(&self) -> Result<impl futures_util::Stream<Item = Change> + Send + 'static> {
@@ -345,7 +382,7 @@ impl Shared {
                 };
                 match entry.operation {
                     kv::Operation::Put => match decode(&entry.value, entry.revision) {
-                        Ok((record, writer)) => Some(Change::Put { own: writer == me, record }),
+                        Ok((record, writer)) => Some(Change::Put { own: writer == me, record: Box::new(record) }),
                         Err(e) => {
                             tracing::error!(job_id = entry.key.as_str(), error = %e, "a shared job record cannot be decoded");
                             None
@@ -365,7 +402,7 @@ impl Shared {
     /// another job that still exists. Blocking.
     pub fn claim_key(&self, scoped: &str, id: &str) -> Result<Option<String>> {
         let name = key_name(scoped);
-        self.block(async {
+        self.block(REQUEST_TIMEOUT, async {
             loop {
                 match self.keys.create(&name, id.to_string().into()).await {
                     Ok(_) => return Ok(None),
@@ -408,7 +445,7 @@ impl Shared {
     pub fn publish(&self, id: &str, priority: Priority) -> Result<()> {
         let mut headers = async_nats::HeaderMap::new();
         headers.insert("Nats-Msg-Id", id);
-        self.block(async {
+        self.block(REQUEST_TIMEOUT, async {
             let ack = self
                 .js
                 .publish_with_headers(self.subject(priority), headers, id.to_string().into())
@@ -422,7 +459,7 @@ impl Shared {
     /// Takes the next job message, highest priority first, without waiting; the job id.
     /// The message is held until [`Shared::ack`] or [`Shared::nak`]. Blocking.
     pub fn take(&self) -> Result<Option<String>> {
-        let message = self.block(async {
+        let message = self.block(REQUEST_TIMEOUT, async {
             for (_, consumer) in &self.consumers {
                 let mut batch = consumer
                     .fetch()
@@ -474,7 +511,10 @@ impl Shared {
     pub fn ack(&self, id: &str) {
         let held = self.held.lock().unwrap_or_else(super::lock_poisoned).remove(id);
         if let Some(h) = held {
-            if let Err(e) = self.block(h.message.double_ack()) {
+            let acked = self.block(REQUEST_TIMEOUT, async {
+                h.message.double_ack().await.map_err(|e| unavailable("cannot acknowledge", e))
+            });
+            if let Err(e) = acked {
                 tracing::warn!(job_id = id, error = %e, "cannot acknowledge the job's message; it may be delivered again (and only acknowledged then)");
             }
         }
@@ -484,7 +524,7 @@ impl Shared {
     pub fn nak(&self, id: &str, delay: Option<Duration>) {
         let held = self.held.lock().unwrap_or_else(super::lock_poisoned).remove(id);
         if let Some(h) = held {
-            let _ = self.block(h.message.ack_with(AckKind::Nak(delay)));
+            self.block_quietly(h.message.ack_with(AckKind::Nak(delay)));
         }
     }
 
@@ -496,7 +536,7 @@ impl Shared {
 
     /// Job messages in the work queue (waiting or being worked on). Blocking.
     pub fn queue_messages(&self) -> Result<u64> {
-        self.block(async {
+        self.block(REQUEST_TIMEOUT, async {
             let mut stream =
                 self.js.get_stream(&self.stream_name).await.map_err(|e| unavailable("cannot read the queue", e))?;
             let info = stream.info().await.map_err(|e| unavailable("cannot read the queue", e))?;
@@ -551,24 +591,25 @@ impl Shared {
     /// [`LEASE`] later. Blocking.
     pub fn take_lease(&self, name: &str) -> bool {
         let me: bytes::Bytes = self.replica.clone().into();
-        self.block(async {
+        let held = self.block(REQUEST_TIMEOUT, async {
             if self.leases.create(name, me.clone()).await.is_ok() {
-                return true;
+                return Ok(true);
             }
-            match self.leases.entry(name).await {
+            Ok(match self.leases.entry(name).await {
                 Ok(Some(e)) if matches!(e.operation, kv::Operation::Put) && e.value == me => {
                     self.leases.update(name, me, e.revision).await.is_ok()
                 }
                 _ => false,
-            }
-        })
+            })
+        });
+        held.unwrap_or(false)
     }
 
     // --- Files ---------------------------------------------------------------------------
 
     /// Stores a local file as object `<id>/<name>`. Blocking.
     pub fn upload(&self, id: &str, name: &str, path: &Path) -> Result<()> {
-        self.block(async {
+        self.block(TRANSFER_TIMEOUT, async {
             let mut file = tokio::fs::File::open(path)
                 .await
                 .map_err(|e| Error::storage(&format!("cannot read {}", path.display()), &e))?;
@@ -583,7 +624,7 @@ impl Shared {
     /// Copies object `<id>/<name>` to `path` (atomically). `false` if there is no such
     /// object. Blocking.
     pub fn download(&self, id: &str, name: &str, path: &Path) -> Result<bool> {
-        self.block(async {
+        self.block(TRANSFER_TIMEOUT, async {
             let mut object = match self.files.get(format!("{id}/{name}")).await {
                 Ok(object) => object,
                 Err(e) if e.kind() == object_store::GetErrorKind::NotFound => return Ok(false),
@@ -617,7 +658,7 @@ impl Shared {
     /// Removes a finished job's uploaded frames (its result and preview sources stay).
     /// Blocking.
     pub fn remove_inputs(&self, id: &str) {
-        self.block(async {
+        self.block_quietly(async {
             for name in ["input.exr", "reference.exr"] {
                 let _ = self.files.delete(format!("{id}/{name}")).await;
             }
@@ -625,7 +666,7 @@ impl Shared {
     }
 
     fn remove_files(&self, id: &str) {
-        self.block(async {
+        self.block_quietly(async {
             for name in FILES {
                 let _ = self.files.delete(format!("{id}/{name}")).await;
             }
