@@ -549,6 +549,29 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_store_is_embedded_unless_nats_servers_are_given() {
+        assert!(parse_serve_args(["serve"]).unwrap().shared_store().is_none());
+        let a =
+            parse_serve_args(["serve", "--store", "nats://u:pw@a:4222,nats://b:4222", "--nats-replicas", "3"]).unwrap();
+        let c = a.shared_store().unwrap();
+        assert_eq!(
+            (c.servers.as_str(), c.replicas, c.prefix.as_str()),
+            ("nats://u:pw@a:4222,nats://b:4222", 3, "mcdenoise")
+        );
+        assert_eq!(a.summary()["store"], "jetstream nats://***@a:4222,nats://b:4222", "no password in /v1/info");
+        for (argv, names) in [
+            (vec!["--store", "redis://x:6379"], "redis://x:6379"),
+            (vec!["--store", "nats://a:4222", "--nats-replicas", "7"], "--nats-replicas"),
+            (vec!["--store", "nats://a:4222", "--nats-prefix", "a.b"], "a.b"),
+        ] {
+            let e = parse_serve_args(["serve"].into_iter().chain(argv)).unwrap_err().to_string();
+            assert!(e.contains(names), "{e}");
+        }
+        let e = parse_serve_args(["serve", "--store", "nats://u:secret@a:4222,bad"]).unwrap_err().to_string();
+        assert!(e.contains("`bad`") && !e.contains("secret"), "{e}");
+    }
+
+    #[test]
     fn defaults_are_documented_values() {
         let a = parse_serve_args(["serve"]).unwrap();
         assert_eq!(a.http.to_string(), "0.0.0.0:8080");

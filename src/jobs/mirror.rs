@@ -123,6 +123,7 @@ impl JobService {
             record.progress = entry.record.progress;
         }
         let (priority, seq) = (entry.record.options.priority, entry.record.seq);
+        let restarted = record.attempts != entry.record.attempts;
         let new = record.state;
         entry.record = record;
         if old == JobState::Queued && new != JobState::Queued {
@@ -137,7 +138,7 @@ impl JobService {
             // Ended elsewhere: the frames uploaded here are not needed any more.
             self.inner.store.remove_inputs(&id);
         }
-        if announce && (old != new || new == JobState::Running) {
+        if announce && (old != new || (new == JobState::Running && restarted)) {
             let entry = &st.jobs[&id];
             let _ = entry.events.send(event_for(self.status_of(st, entry)));
         }
