@@ -210,7 +210,9 @@ impl WorkerLink {
     pub fn progress(&self, id: &str, progress: Progress) {
         let s = &self.service;
         let mut st = s.lock();
-        if let Some(entry) = st.jobs.get_mut(id) {
+        // Only while running: in shared mode a run that lost its job to another replica
+        // goes on to its next tile after the job has ended there.
+        if let Some(entry) = st.jobs.get_mut(id).filter(|e| e.record.state == JobState::Running) {
             entry.record.progress = progress;
             let _ = entry.events.send(JobEvent::Progress(progress));
         }
