@@ -79,6 +79,23 @@ def load_raw(record: dict, cache: Path | None) -> dict[str, np.ndarray | float]:
     return out
 
 
+def tile_to_smallest(arrays: list[dict]) -> list[dict]:
+    """Frames of several sizes as tiles of the smallest: each larger frame is cut into
+    non-overlapping tiles of that height and width (a remainder at the right and bottom is
+    dropped); every tile keeps its frame's maxima, which the preprocessing normalises by,
+    and its name, sample count and scene."""
+    h = min(a["raw"].shape[-2] for a in arrays)
+    w = min(a["raw"].shape[-1] for a in arrays)
+    out = []
+    for a in arrays:
+        H, W = a["raw"].shape[-2:]
+        for y in range(0, H - h + 1, h):
+            for x in range(0, W - w + 1, w):
+                out.append({"raw": a["raw"][..., y:y + h, x:x + w], "ref": a["ref"][..., y:y + h, x:x + w],
+                            "maxima": a["maxima"], "meta": a["meta"]})
+    return out
+
+
 class FrameSet:
     """Frames of one split as device tensors: raw [F, 20, H, W], ref [F, 6, H, W], maxima [F, 2]."""
 
@@ -88,20 +105,17 @@ class FrameSet:
         for d in dirs:
             recs += [(r, Path(d)) for r in manifest_frames(d) if r.get("split", "train") == split]
         recs = recs[:limit]
-        by_shape: dict[tuple, list] = {}
-        self.names, self.spp, self.scenes = [], [], []
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
-            loaded = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if cache else None), recs))
-        for (r, d), a in zip(recs, loaded):
-            by_shape.setdefault(a["raw"].shape, []).append(a)
-            self.names.append(Path(r["noisy"]).stem)
-            self.spp.append(int(r.get("spp", 0)))
-            self.scenes.append(str(r.get("scene", "")))
-        if len(by_shape) > 1:
-            raise ValueError(f"frames of several sizes in {dirs} ({sorted(by_shape)}); use one size per data set")
-        arrays = next(iter(by_shape.values())) if by_shape else []
+            arrays = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if cache else None), recs))
+        for (r, _), a in zip(recs, arrays):
+            a["meta"] = (Path(r["noisy"]).stem, int(r.get("spp", 0)), str(r.get("scene", "")))
+        if len({a["raw"].shape for a in arrays}) > 1:  # e.g. 128² frames from a CPU beside 256² from a GPU
+            arrays = tile_to_smallest(arrays)
+        self.names = [a["meta"][0] for a in arrays]
+        self.spp = [a["meta"][1] for a in arrays]
+        self.scenes = [a["meta"][2] for a in arrays]
         self.raw = torch.from_numpy(np.stack([a["raw"] for a in arrays])).to(device) if arrays else None
         self.ref = torch.from_numpy(np.stack([a["ref"] for a in arrays])).to(device) if arrays else None
         self.maxima = torch.from_numpy(np.stack([a["maxima"] for a in arrays])).to(device) if arrays else None

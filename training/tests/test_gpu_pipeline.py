@@ -1,11 +1,12 @@
 """scripts/gpu-pipeline end to end on tiny inputs, on the CPU (DEVICE=cpu): render (training,
-validation and test workers), train two runs side by side against a deadline, pack the
-results, pack the test set and unpack it here as one data set."""
+validation and test workers), carry another data set of another size beside it, train two
+runs side by side in the background against a deadline, pack the results in pieces and
+unpack them, pack the test set and unpack it here as one data set."""
 
 import json
 import os
 import subprocess
-import tarfile
+import sys
 from pathlib import Path
 
 import pytest
@@ -22,7 +23,6 @@ def _run(env, *args, timeout=300):
 
 @pytest.mark.skipif(not SCRIPT.exists(), reason="scripts/gpu-pipeline missing")
 def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
-    import sys
 
     home = tmp_path / "home"
     env = {**os.environ, "GPU_HOME": str(home), "DEVICE": "cpu", "PY": sys.executable, "WORKERS": "2",
@@ -37,7 +37,25 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
             splits.setdefault(m.parent.name, set()).add(r["split"])
     assert splits.get("w0") == {"val"} and splits.get("w1") == {"train"} and splits.get("t0") == {"test"}
 
-    _run(env, "train", "45")
+    # A second data set of another size (frames of 48², as if from the CPU), carried in two
+    # pieces with every other noisy level, trains beside the rendered 32² frames.
+    other = tmp_path / "other"
+    subprocess.run([sys.executable, "-m", "mcdenoise_train.datagen.dataset", "--out", str(other), "--scenes", "3",
+                    "--size", "48", "--spp", "2,4,8", "--ref-spp", "16", "--val-fraction", "0.34", "--seed-base", "7",
+                    "--no-progress"], cwd=SCRIPT.parents[1] / "training", check=True, capture_output=True, timeout=300)
+    carry = tmp_path / "carry"
+    res = _run(env, "carry-data", str(other), "mitsuba", str(carry / "extra" / "other"), "0.2", "5")
+    assert "3 of 3 mitsuba scenes carried" in res.stdout, res.stdout
+    carried = [json.loads(line) for m in sorted(carry.glob("extra/other-*/manifest.jsonl"))
+               for line in m.read_text().splitlines()]
+    assert len(carried) == 3 and all(set(r["frames"]) in ({"2", "8", "ref"}, {"4", "ref"}) for r in carried)
+    _run(env, "stash", str(carry))
+    assert (home / "stash" / "extra" / "other-2" / "manifest.jsonl").is_file()
+
+    _run({**env, "BACKGROUND": "1"}, "train", "50")
+    _run(env, "wait-train", "120", timeout=180)
+    log = (home / "logs" / "train-a.log").read_text()
+    assert "frames loaded" in log and "/stash/extra/other-1" in (home / "runs" / "a" / "config.json").read_text()
     for run in ("a", "b"):
         assert (home / "runs" / run / "best.pt").is_file()
         for variant in ("full", "nocov"):
@@ -45,9 +63,11 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
 
     out = tmp_path / "out"
     _run(env, "pack", str(out))
-    with tarfile.open(out / "models-runs.tar.gz") as t:
-        names = t.getnames()
-    assert "models/a/full/model.onnx" in names and "runs/b/val.jsonl" in names
+    assert all(p.stat().st_size <= 15_000_000 for p in out.glob("models-runs.tar.gz.part-*"))
+    unpacked = tmp_path / "unpacked"
+    _run(env, "unpack", str(out), str(unpacked))
+    assert (unpacked / "models" / "a" / "full" / "model.onnx").is_file()
+    assert (unpacked / "runs" / "b" / "val.jsonl").is_file()
 
     _run(env, "pack-test", str(out))
     assert all(p.stat().st_size <= 15_000_000 for p in out.glob("test-data.tar.part-*"))
