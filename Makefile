@@ -92,15 +92,16 @@ train: setup-train build
 	cd training && $(PY) -m mcdenoise_train.train --data $(abspath $(DATA)) --out $(abspath $(RUN)) \
 	  --variant $(VARIANT) $(TRAIN_ARGS) --resume --export $(CURDIR)/models
 
-## Quality (docs/results.md): the noisy input, both shipped variants and OIDN on the
-## validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
+## Quality (docs/results.md): the noisy input, the default variant (`full` on frames with
+## covariance, `nocov` on frames without), `nocov`, `lin2020` (frames with covariance only)
+## and OIDN on the validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
 ## and sample count, with plots and side-by-side crops, and the firefly check (20 injected
 ## outliers per frame, with and without the handling; docs/fireflies.md).
 TEST_DATA ?= data-test
 # The data generator's test sets (--test-scenes) carry split `test`; older sets `val`.
 TEST_SPLIT ?= test
-TEST_OUT ?= test-families
-EVAL_METHODS = --method full=$(CURDIR)/models:full --method nocov=$(CURDIR)/models:nocov --method lin2020=$(CURDIR)/models:lin2020 --oidn --crops 4 --outliers 20
+TEST_OUT ?= test-both
+EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method lin2020=$(CURDIR)/models:lin2020 --oidn --crops 4 --outliers 20
 eval: setup-train build
 	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
 	  --out $(CURDIR)/docs/results/val

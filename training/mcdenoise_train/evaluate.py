@@ -37,6 +37,10 @@ from .files import write_jsonl
 METRICS = ("relmse", "dssim", "psnr", "smape")
 
 
+class NotApplicable(Exception):
+    """The frame lacks a channel the chosen model needs (the engine's message)."""
+
+
 def run_engine(noisy: str, reference: str, models: str, variant: str | None, out: Path, threads: int,
                fireflies: str | None = None) -> dict:
     cmd = [engine_binary(), "run", str(noisy), "-o", str(out), "--reference", reference, "--models", models,
@@ -47,7 +51,10 @@ def run_engine(noisy: str, reference: str, models: str, variant: str | None, out
         cmd += ["--fireflies", fireflies]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
-        raise RuntimeError(f"mcdenoise run {noisy}: {res.stderr.strip()}")
+        err = res.stderr.strip()
+        if "model needs a `" in err:  # e.g. `full` or `lin2020` on a frame without covariance
+            raise NotApplicable(err.removeprefix("error: "))
+        raise RuntimeError(f"mcdenoise run {noisy}: {err}")
     return json.loads(res.stdout)
 
 
@@ -153,6 +160,8 @@ def outlier_check(r: dict, base: dict, a, tmp: Path, clean: dict[str, float], se
     for spec in a.method:
         name, _, rest = spec.partition("=")
         models, _, variant = rest.partition(":")
+        if f"{name} (fireflies auto)" not in clean:
+            continue  # the method cannot take this frame
         for mode in ("auto", "off"):
             label = f"{name} (fireflies {mode})"
             if label not in clean:
@@ -280,16 +289,24 @@ def main(argv=None) -> int:
         raise SystemExit(f"{a.data}: no frames in split {a.split!r}")
     rows = []
     outlier_rows = []
+    skipped: dict[str, list[str]] = {}  # method -> frames it cannot take
     crop_scenes = list(dict.fromkeys(r.get("scene", "") for r in records))[: a.crops]
     lowest = {sc: min(r["spp"] for r in records if r.get("scene", "") == sc) for sc in crop_scenes}
     with tempfile.TemporaryDirectory() as tmp:
         for r in records:
             base = {"scene": r.get("scene", ""), "spp": r.get("spp", 0), "frame": Path(r["noisy"]).name}
             rows.append({**base, "method": "input", **metrics(Path(r["noisy"]), r["reference"])})
+            ran = set()
             for spec in a.method:
                 name, _, rest = spec.partition("=")
                 models, _, variant = rest.partition(":")
-                rep = run_engine(r["noisy"], r["reference"], models, variant or None, Path(tmp) / f"{name}.exr", a.threads)
+                try:
+                    rep = run_engine(r["noisy"], r["reference"], models, variant or None, Path(tmp) / f"{name}.exr",
+                                     a.threads)
+                except NotApplicable as e:
+                    skipped.setdefault(name, []).append(f"{base['frame']}: {e}")
+                    continue
+                ran.add(name)
                 rows.append({**base, "method": name, **rep["metrics"]["output"],
                              "seconds": rep["timings_ms"]["total"] / 1e3})
             if a.oidn:
@@ -306,7 +323,8 @@ def main(argv=None) -> int:
                 images = {f"input ({base['spp']} spp)": sum(np.stack([ch[f"{p}.{c}"] for c in "RGB"], -1) for p in ("diffuse", "specular"))}
                 for spec in a.method:
                     name = spec.partition("=")[0]
-                    images[name] = rgb_of(Path(tmp) / f"{name}.exr")
+                    if name in ran:
+                        images[name] = rgb_of(Path(tmp) / f"{name}.exr")
                 if a.oidn:
                     images["OIDN"] = rgb_of(Path(tmp) / "oidn.exr")
                 images["reference"] = rgb_of(r["reference"])
@@ -314,6 +332,9 @@ def main(argv=None) -> int:
             print(f"{base['frame']}: " + ", ".join(f"{x['method']} {x['relmse']:.4g}" for x in rows if x["frame"] == base["frame"]), flush=True)
     write_jsonl(out / "results.jsonl", rows)
     summary = summarize(rows)
+    if skipped:
+        summary += "\n## Frames a method cannot take (not in its means)\n\n" + "".join(
+            f"- {name}: {len(v)} frames, e.g. {v[0]}\n" for name, v in skipped.items())
     if outlier_rows:
         write_jsonl(out / "outliers.jsonl", outlier_rows)
         summary += summarize_outliers(outlier_rows)

@@ -125,30 +125,29 @@ class FrameSet:
 
 
 def augment(raw: torch.Tensor, ref: torch.Tensor, g: torch.Generator, a: argparse.Namespace):
-    """Flips, transposes, RGB permutation, exposure and injected fireflies, per patch."""
+    """Flips, transposes, RGB permutation, exposure and injected fireflies, per patch.
+
+    Whole-batch tensor operations, with the random draws made on the host and no value read
+    back from the device: a GPU step stays asynchronous."""
     n = raw.shape[0]
     dev = raw.device
-    out_raw, out_ref = [], []
-    for i in range(n):
-        r, t = raw[i], ref[i]
-        flips = torch.randint(0, 2, (3,), generator=g).tolist()
-        if flips[0]:
-            r, t = r.flip(-1), t.flip(-1)
-        if flips[1]:
-            r, t = r.flip(-2), t.flip(-2)
-        if flips[2] and r.shape[-1] == r.shape[-2]:
-            r, t = r.transpose(-1, -2), t.transpose(-1, -2)
-        perm = torch.randperm(3, generator=g).tolist()
-        if perm != [0, 1, 2]:
-            idx = list(range(r.shape[0]))
-            for base in (DIFFUSE.start, SPECULAR.start, ALBEDO.start):
-                for j in range(3):
-                    idx[base + j] = base + perm[j]
-            r = r[idx]
-            t = t[[perm[0], perm[1], perm[2], 3 + perm[0], 3 + perm[1], 3 + perm[2]]]
-        out_raw.append(r)
-        out_ref.append(t)
-    raw, ref = torch.stack(out_raw), torch.stack(out_ref)
+    flips = torch.randint(0, 2, (n, 3), generator=g).bool()
+    ops = [(flips[:, 0], lambda x: x.flip(-1)), (flips[:, 1], lambda x: x.flip(-2))]
+    if raw.shape[-1] == raw.shape[-2]:
+        ops.append((flips[:, 2], lambda x: x.transpose(-1, -2)))
+    for m, op in ops:
+        if m.any():
+            m = m.to(dev)[:, None, None, None]
+            raw, ref = torch.where(m, op(raw), raw), torch.where(m, op(ref), ref)
+    # RGB permutation, shared by both components' colour and the albedo (their variances are
+    # one channel each): one gather along the channel axis.
+    perm = torch.stack([torch.randperm(3, generator=g) for _ in range(n)])  # [n, 3]
+    idx = torch.arange(raw.shape[1]).repeat(n, 1)
+    for base in (DIFFUSE.start, SPECULAR.start, ALBEDO.start):
+        idx[:, base:base + 3] = base + perm
+    ref_idx = torch.cat([perm, 3 + perm], 1)
+    raw = torch.gather(raw, 1, idx.to(dev)[:, :, None, None].expand_as(raw))
+    ref = torch.gather(ref, 1, ref_idx.to(dev)[:, :, None, None].expand_as(ref))
     # Exposure: radiance x k, its variances x k^2 (albedo, normal, depth, covariance unchanged).
     k = torch.exp2((torch.rand(n, 1, 1, 1, generator=g) * 2 - 1) * a.exposure).to(dev)
     raw = raw.clone()
@@ -163,35 +162,47 @@ def augment(raw: torch.Tensor, ref: torch.Tensor, g: torch.Generator, a: argpars
 
 def inject_fireflies(raw: torch.Tensor, g: torch.Generator, fraction: float, per_patch: int = 4) -> None:
     """In place: in `fraction` of the patches, `per_patch` isolated samples of 10–10^4 x the
-    local level added to the diffuse or the specular buffer, variance raised to match."""
+    local level (the mean over 7x7 around it) added to the diffuse or the specular buffer,
+    variance raised to match."""
     n, _, h, w = raw.shape
-    for i in range(n):
-        if torch.rand(1, generator=g).item() >= fraction:
-            continue
-        for _ in range(per_patch):
-            y, x = torch.randint(0, h, (1,), generator=g).item(), torch.randint(0, w, (1,), generator=g).item()
-            comp = DIFFUSE if torch.rand(1, generator=g).item() < 0.5 else SPECULAR
-            var = VAR["diffuse"] if comp is DIFFUSE else VAR["specular"]
-            y0, y1, x0, x1 = max(0, y - 3), min(h, y + 4), max(0, x - 3), min(w, x + 4)
-            level = raw[i, comp, y0:y1, x0:x1].mean().clamp(min=1e-2)
-            gain = 10.0 ** (1 + 3 * torch.rand(1, generator=g).item())
-            tint = torch.rand(3, generator=g).to(raw.device) * 0.5 + 0.5
-            added = level * gain * tint
-            raw[i, comp, y, x] += added
-            raw[i, var, y, x] += float((added.mean() ** 2).item())
+    dev = raw.device
+    chosen = torch.nonzero(torch.rand(n, generator=g) < fraction).flatten()
+    m = len(chosen) * per_patch
+    if m == 0:
+        return
+    i = chosen.repeat_interleave(per_patch)
+    y, x = torch.randint(0, h, (m,), generator=g), torch.randint(0, w, (m,), generator=g)
+    specular = torch.rand(m, generator=g) < 0.5
+    gain = 10.0 ** (1 + 3 * torch.rand(m, generator=g))
+    tint = torch.rand(m, 3, generator=g) * 0.5 + 0.5
+    i, y, x, specular, gain, tint = (t.to(dev) for t in (i, y, x, specular, gain, tint))
+    base = torch.where(specular, SPECULAR.start, DIFFUSE.start)
+    chan = base[:, None] + torch.arange(3, device=dev)  # [m, 3]
+    both = torch.stack([raw[:, DIFFUSE], raw[:, SPECULAR]], 1).view(n, 6, h, w)
+    local = torch.nn.functional.avg_pool2d(both, 7, stride=1, padding=3, count_include_pad=False).view(n, 2, 3, h, w)
+    level = local[i, specular.long(), :, y, x].mean(1).clamp(min=1e-2)  # [m]
+    added = level[:, None] * gain[:, None] * tint  # [m, 3]
+    raw.index_put_((i[:, None].expand(-1, 3), chan, y[:, None].expand(-1, 3), x[:, None].expand(-1, 3)), added,
+                   accumulate=True)
+    var = torch.where(specular, VAR["specular"], VAR["diffuse"])
+    raw.index_put_((i, var, y, x), added.mean(1) ** 2, accumulate=True)
 
 
 def crops(fs: FrameSet, n: int, patch: int, g: torch.Generator):
     """`n` random crops of side patch + 1 (the extra row and column give the last pixel's
-    forward gradient; it is dropped after preprocessing)."""
-    f = torch.randint(0, len(fs), (n,), generator=g).tolist()
+    forward gradient; it is dropped after preprocessing), gathered in one indexing operation."""
+    f = torch.randint(0, len(fs), (n,), generator=g)
     h, w = fs.raw.shape[-2:]
     p = patch + 1
-    ys = torch.randint(0, h - p + 1, (n,), generator=g).tolist()
-    xs = torch.randint(0, w - p + 1, (n,), generator=g).tolist()
-    raw = torch.stack([fs.raw[i, :, y:y + p, x:x + p] for i, y, x in zip(f, ys, xs)])
-    ref = torch.stack([fs.ref[i, :, y:y + p, x:x + p] for i, y, x in zip(f, ys, xs)])
-    return raw, ref, fs.maxima[f]
+    ys = torch.randint(0, h - p + 1, (n,), generator=g)
+    xs = torch.randint(0, w - p + 1, (n,), generator=g)
+    dev = fs.raw.device
+    rows = (ys[:, None] + torch.arange(p)).to(dev)[:, :, None]  # [n, p, 1]
+    cols = (xs[:, None] + torch.arange(p)).to(dev)[:, None, :]  # [n, 1, p]
+    fi = f.to(dev)[:, None, None]
+    raw = fs.raw[fi, :, rows, cols].permute(0, 3, 1, 2)  # [n, p, p, C] -> [n, C, p, p]
+    ref = fs.ref[fi, :, rows, cols].permute(0, 3, 1, 2)
+    return raw.contiguous(), ref.contiguous(), fs.maxima[f.to(dev)]
 
 
 def batch_inputs(raw, ref, maxima, cov_dropout: float, g: torch.Generator, crop: int | None = None):

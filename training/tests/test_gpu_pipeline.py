@@ -52,6 +52,12 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
     _run(env, "stash", str(carry))
     assert (home / "stash" / "extra" / "other-2" / "manifest.jsonl").is_file()
 
+    # A run that cannot begin (patches larger than every frame) fails the command that
+    # started it in the background, with the run's own message.
+    bad = subprocess.run([str(SCRIPT), "train", "50"], env={**env, "BACKGROUND": "1", "PATCH": "64"},
+                         capture_output=True, text=True, timeout=200)
+    assert bad.returncode == 1 and "--patch 64 needs frames of at least 65 pixels" in bad.stderr, bad.stderr
+
     _run({**env, "BACKGROUND": "1"}, "train", "50")
     _run(env, "wait-train", "120", timeout=180)
     log = (home / "logs" / "train-a.log").read_text()

@@ -125,6 +125,30 @@ def test_evaluate_compares_input_models_and_oidn(tmp_path):
 
 
 @needs_engine
+def test_evaluate_leaves_out_frames_a_model_cannot_take(tmp_path):
+    """A frame without covariance (e.g. from Cycles) is not `full`'s: that method skips it,
+    says so in results.md, and the other methods (the automatic variant among them) run."""
+    from pathlib import Path
+
+    from mcdenoise_train import evaluate
+    from mcdenoise_train.exr import read_exr
+
+    root = make_dataset(tmp_path / "d")
+    frame = read_exr(root / "s2-spp8.exr")
+    write_exr(root / "s2-spp8.exr", {k: v for k, v in frame.items() if not k.startswith("covariance")})
+    tiny = Path(__file__).resolve().parents[2] / "tests/fixtures/models/tiny"
+    assert evaluate.main(["--data", str(root), "--method", f"auto={tiny}", "--method", f"full={tiny}:full",
+                          "--outliers", "2", "--out", str(tmp_path / "eval")]) == 0
+    rows = [json.loads(l) for l in open(tmp_path / "eval" / "results.jsonl")]
+    assert [r["method"] for r in rows] == ["input", "auto"]
+    text = (tmp_path / "eval" / "results.md").read_text()
+    assert "| auto | 1 |" in text and "| full | 0 |" not in text
+    assert "- full: 1 frames, e.g. s2-spp8.exr: the `full` model needs a `covariance` channel" in text
+    labels = [json.loads(l)["label"] for l in open(tmp_path / "eval" / "outliers.jsonl")]
+    assert labels == ["auto (fireflies auto)", "auto (fireflies off)"]
+
+
+@needs_engine
 def test_evaluate_reports_the_outlier_check(tmp_path):
     from pathlib import Path
 

@@ -139,3 +139,27 @@ def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
         meta = read_metadata(models / "lin2020" / f"{c}.onnx")
         assert meta["mcdenoise.contract"] == "1" and meta["mcdenoise.variant"] == "lin2020"
         assert meta["mcdenoise.component"] == c and meta["mcdenoise.kernel_size"] == "21"
+
+
+def test_crops_are_the_frames_windows():
+    class Frames:
+        raw = torch.randn(3, 20, 40, 36)
+        ref = torch.randn(3, 6, 40, 36)
+        maxima = torch.rand(3, 2)
+
+        def __len__(self):
+            return 3
+
+    fs = Frames()
+    g = torch.Generator().manual_seed(3)
+    raw, ref, maxima = train_ms.crops(fs, 5, 16, g)
+    # The same draws, made again, name each crop's frame and corner.
+    g = torch.Generator().manual_seed(3)
+    f = torch.randint(0, 3, (5,), generator=g)
+    ys, xs = torch.randint(0, 40 - 17 + 1, (5,), generator=g), torch.randint(0, 36 - 17 + 1, (5,), generator=g)
+    assert raw.shape == (5, 20, 17, 17) and ref.shape == (5, 6, 17, 17)
+    for k in range(5):
+        i, y, x = int(f[k]), int(ys[k]), int(xs[k])
+        assert torch.equal(raw[k], fs.raw[i, :, y:y + 17, x:x + 17])
+        assert torch.equal(ref[k], fs.ref[i, :, y:y + 17, x:x + 17])
+        assert torch.equal(maxima[k], fs.maxima[i])
