@@ -94,19 +94,23 @@ train: setup-train build
 
 ## Quality (docs/results.md): the noisy input, the default variant (`full` on frames with
 ## covariance, `nocov` on frames without), `nocov`, `lin2020` (frames with covariance only)
-## and OIDN on the validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
+## and OIDN (high, balanced, fast) on the validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
 ## and sample count, with plots and side-by-side crops, and the firefly check (20 injected
-## outliers per frame, with and without the handling; docs/fireflies.md).
+## outliers per frame, with and without the handling; docs/fireflies.md); then quality against
+## time (benches/quality_time.py: seconds per 720p frame on this machine, after make bench).
 TEST_DATA ?= data-test
 # The data generator's test sets (--test-scenes) carry split `test`; older sets `val`.
 TEST_SPLIT ?= test
 TEST_OUT ?= test-both
-EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method lin2020=$(CURDIR)/models:lin2020 --oidn --crops 4 --outliers 20
+EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method lin2020=$(CURDIR)/models:lin2020 --oidn --oidn-quality high,balanced,fast --crops 4 --outliers 20
 eval: setup-train build
 	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
 	  --out $(CURDIR)/docs/results/val
 	if [ -f $(TEST_DATA)/manifest.jsonl ]; then cd training && $(PY) -m mcdenoise_train.evaluate \
 	  --data $(abspath $(TEST_DATA)) --split $(TEST_SPLIT) $(EVAL_METHODS) --out $(CURDIR)/docs/results/$(TEST_OUT); fi
+	if [ -f target/bench/frame-1280x720.exr ]; then $(PY) benches/quality_time.py \
+	  --results docs/results/$(TEST_OUT)/results.jsonl --out docs/results/quality-time.json; \
+	  else echo "no target/bench/frame-1280x720.exr (make bench writes it): quality against time left out"; fi
 	$(PY) benches/report.py
 
 ## Speed (docs/results.md): GEMM ceiling, ONNX Runtime alone, the engine's stages, the

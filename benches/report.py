@@ -135,6 +135,19 @@ def scale_out_section(report: dict) -> list[str]:
     return out
 
 
+def quality_time_section(report: dict) -> list[str]:
+    out = ["", "### Quality against time", "",
+           f"Produced by `{EVAL_CMD}` (benches/quality_time.py): mean RelMSE and DSSIM over the "
+           f"{report['frames']} frames of `{report['results']}` on which every method ran, against the seconds per "
+           f"{report['width']}×{report['height']} frame on this machine: `mcdenoise run` as a whole process "
+           f"({report['threads']} threads; EXR decode, model load, denoise, EXR encode) and the OIDN call alone "
+           f"(every core), the median of {report['runs']} runs after a warm-up.", "",
+           "| method | seconds | RelMSE | DSSIM |", "|---|---|---|---|"]
+    for p in report["points"]:
+        out.append(f"| {p['method']} | {p['seconds']:.2f} | {p['relmse']:.4g} | {p['dssim']:.4g} |")
+    return out + ["", "![quality against time](results/quality-time.png)"]
+
+
 def quality_section(results: Path) -> list[str]:
     out = ["## Quality", "",
            f"Produced by `{EVAL_CMD}` (training/mcdenoise_train/evaluate.py): every frame denoised by `mcdenoise run` "
@@ -153,6 +166,8 @@ def quality_section(results: Path) -> list[str]:
         if crops:
             out += ["Crops at each scene's lowest sample count (input, ours, OIDN, reference; clamped sRGB):", ""]
             out += [f"![{c.stem}](results/{split}/crops/{c.name})" for c in crops]
+    if (results / "quality-time.json").exists():
+        out += quality_time_section(json.loads((results / "quality-time.json").read_text()))
     return out
 
 

@@ -115,7 +115,8 @@ fn gemm_ceiling(n: usize, threads: usize, runs: usize) -> Result<f64> {
     let env = runtime::environment(None).map_err(anyhow::Error::msg)?;
     let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/matmul.onnx");
     // The engine's own session settings.
-    let mut session = model::build_session(env, &model, threads).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut session =
+        model::build_session(env, &model, model::Placement::cpu(threads)).map_err(|e| anyhow::anyhow!("{e}"))?;
     let a: Vec<f32> = (0..n * n).map(|i| ((i % 97) as f32) * 0.01).collect();
     let b: Vec<f32> = (0..n * n).map(|i| ((i % 89) as f32) * 0.01).collect();
     let mut best = f64::INFINITY;

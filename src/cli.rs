@@ -107,8 +107,17 @@ pub struct RunArgs {
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_library: Option<PathBuf>,
+    /// Where the networks run: `cpu`, `cuda` or `cuda:N` (ONNX Runtime's CUDA execution
+    /// provider, from the GPU build of ONNX Runtime), or `auto` (CUDA where available).
+    #[arg(long, env = "MCDENOISE_DEVICE", default_value = "cpu", value_parser = parse_device)]
+    pub device: engine::Device,
     #[command(flatten)]
     pub frame: FrameArgs,
+}
+
+/// clap's parser for `--device` ([`engine::Device`]).
+pub fn parse_device(s: &str) -> std::result::Result<engine::Device, String> {
+    s.parse()
 }
 
 #[derive(Args, Debug)]
@@ -162,6 +171,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         config.threads = t;
     }
     config.ort_library = args.ort_library.clone();
+    config.device = args.device;
 
     let t = Instant::now();
     let mut engine = Engine::load(&config)?;
@@ -203,6 +213,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "tiles": out.tiles,
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "threads": config.threads,
+        "device": engine.device().to_string(),
         "flops_per_pixel": flops,
         "sanitized": out.sanitized,
         "missing_variances": out.missing_variances,

@@ -138,6 +138,12 @@ pub struct ServeArgs {
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
     #[arg(long, env = "ORT_DYLIB_PATH", help_heading = "Models and workers")]
     pub ort_library: Option<PathBuf>,
+    /// Where the networks run: `cpu`, `cuda` or `cuda:N` (ONNX Runtime's CUDA execution
+    /// provider on GPU N; needs the GPU build of ONNX Runtime, as in the GPU image), or
+    /// `auto` (CUDA where available, else the CPU). Workers share the device: with a GPU,
+    /// `--workers` is the number of jobs on it at once.
+    #[arg(long, env = "MCDENOISE_DEVICE", default_value = "cpu", value_parser = crate::cli::parse_device, help_heading = "Models and workers")]
+    pub device: crate::engine::Device,
     /// Workers, each with its own ONNX Runtime sessions, denoising one job at a time
     /// (default: cores / threads-per-worker, at least 1).
     #[arg(long, env = "MCDENOISE_WORKERS", help_heading = "Models and workers")]
@@ -395,6 +401,7 @@ impl ServeArgs {
             "data_dir": self.data_dir,
             "store": self.shared_store().map(|c| format!("jetstream {}", crate::jobs::shared::redact(&c.servers))).unwrap_or_else(|| "embedded".into()),
             "models": self.models,
+            "device": self.device.to_string(),
             "workers": self.workers(),
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,

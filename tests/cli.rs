@@ -134,6 +134,52 @@ fn a_missing_onnx_runtime_is_a_clear_error() {
 }
 
 #[test]
+fn cuda_without_the_gpu_build_of_onnx_runtime_is_a_clear_error() {
+    // Where the library is the GPU build, `cuda` would run (or fail for want of a GPU): this
+    // test is about the CPU build, which CI and `scripts/setup` install.
+    mcdenoise::engine::runtime::environment(None).expect("the ONNX Runtime library");
+    if mcdenoise::engine::device::cuda_provider_available() {
+        eprintln!("skipped: this ONNX Runtime library has the CUDA execution provider");
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let input = write_frame(tmp.path(), "in.exr", 16, 16, true);
+    let out = tmp.path().join("o.exr");
+    let run = |device: &str| {
+        bin()
+            .args(["run", input.to_str().unwrap(), "-o", out.to_str().unwrap()])
+            .args(["--models", tiny_models().to_str().unwrap(), "--threads", "1", "--device", device])
+            .output()
+            .unwrap()
+    };
+    let res = run("cuda:1");
+    assert_eq!(res.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&res.stderr);
+    for part in ["--device cuda:1", "has no CUDA execution provider", "onnxruntime-gpu", "--device cpu"] {
+        assert!(err.contains(part), "{part}: {err}");
+    }
+    assert!(!err.contains("panicked") && !out.exists(), "{err}");
+    // `auto` falls back to the CPU and the report says where it ran.
+    let res = run("auto");
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap();
+    assert_eq!(report["device"], "cpu");
+    let res = run("gpu");
+    assert_eq!(res.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&res.stderr).contains("unknown device `gpu`"));
+    // The daemon stops at start-up with the same message, before it takes a job.
+    let res = bin()
+        .args(["serve", "--models", tiny_models().to_str().unwrap(), "--data-dir"])
+        .arg(tmp.path().join("data"))
+        .args(["--http", "127.0.0.1:0", "--grpc", "127.0.0.1:0", "--device", "cuda"])
+        .output()
+        .unwrap();
+    assert_eq!(res.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(err.contains("--device cuda:0: the ONNX Runtime library") && err.contains("onnxruntime-gpu"), "{err}");
+}
+
+#[test]
 fn a_models_directory_not_found_is_named_as_resolved() {
     let tmp = tempfile::tempdir().unwrap();
     let res = bin()

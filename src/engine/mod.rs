@@ -12,6 +12,7 @@
 //! its pooling grid and regions padded to it, so that tiles see the frame's grid.
 
 pub mod contract;
+pub mod device;
 pub mod fireflies;
 pub mod model;
 pub mod multiscale;
@@ -25,6 +26,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use contract::{Component, FeatureSet, Variant};
+pub use device::Device;
 pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
 pub use preprocess::{FrameStats, Rect, EPS};
@@ -63,6 +65,8 @@ pub struct EngineConfig {
     pub threads: usize,
     /// Explicit path of libonnxruntime; otherwise it is searched for (see [`runtime`]).
     pub ort_library: Option<PathBuf>,
+    /// Where the networks run ([`Device`]; `cpu` unless asked).
+    pub device: Device,
 }
 
 impl EngineConfig {
@@ -73,6 +77,7 @@ impl EngineConfig {
             tile_v2: DEFAULT_TILE_V2,
             threads: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             ort_library: None,
+            device: Device::Cpu,
         }
     }
 }
@@ -142,6 +147,7 @@ pub struct Engine {
     tile: usize,
     tile_v2: usize,
     pool: rayon::ThreadPool,
+    device: Device,
 }
 
 impl Engine {
@@ -149,13 +155,20 @@ impl Engine {
     pub fn load(config: &EngineConfig) -> Result<Engine, EngineError> {
         let env = runtime::environment(config.ort_library.as_deref()).map_err(EngineError::Runtime)?;
         let threads = config.threads.max(1);
-        let models = model::load_models(env, &config.models_dir, threads)?;
+        let library = runtime::library().map_or_else(|| "loaded".to_string(), |p| p.display().to_string());
+        let device = config.device.resolve(&library).map_err(EngineError::Runtime)?;
+        let models = model::load_models(env, &config.models_dir, model::Placement { threads, device })?;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("mcdenoise-engine-{i}"))
             .build()
             .map_err(|e| EngineError::Runtime(format!("cannot start the engine's thread pool: {e}")))?;
-        Ok(Engine { models, tile: config.tile, tile_v2: config.tile_v2, pool })
+        Ok(Engine { models, tile: config.tile, tile_v2: config.tile_v2, pool, device })
+    }
+
+    /// Where the networks run: `cpu` or `cuda:N` (`auto` resolved at load).
+    pub fn device(&self) -> Device {
+        self.device
     }
 
     /// What each loaded network declares.

@@ -10,6 +10,7 @@ use serde::Serialize;
 use sha2::Digest;
 
 use super::contract::{self, keys, Component, FeatureSet, Variant, COLOR_CHANNELS, TAPS};
+use super::device::Device;
 use super::multiscale::Pyramid;
 use super::EngineError;
 
@@ -65,11 +66,36 @@ fn model_error(path: &Path, reason: impl Into<String>) -> EngineError {
     EngineError::Model { path: path.to_path_buf(), reason: reason.into() }
 }
 
+/// Where and with how many threads a network's session runs.
+#[derive(Clone, Copy, Debug)]
+pub struct Placement {
+    /// Intra-op threads (CPU work, and the host side of a GPU session).
+    pub threads: usize,
+    /// Resolved: `cpu` or `cuda:N` ([`Device::resolve`]).
+    pub device: Device,
+}
+
+impl Placement {
+    pub fn cpu(threads: usize) -> Placement {
+        Placement { threads, device: Device::Cpu }
+    }
+}
+
 /// Session options: `threads` intra-op threads, no spinning (the engine is idle between
-/// jobs), all graph optimizations. A helper returning `ort::Result` because builder errors
-/// carry the builder and are not `Send`.
-pub fn build_session(env: &ort::environment::Environment, path: &Path, threads: usize) -> ort::Result<Session> {
-    Session::builder(env)?
+/// jobs), all graph optimizations; on `cuda:N` ONNX Runtime's CUDA execution provider on
+/// that GPU, failing rather than falling back to the CPU. A helper returning `ort::Result`
+/// because builder errors carry the builder and are not `Send`.
+pub fn build_session(env: &ort::environment::Environment, path: &Path, placement: Placement) -> ort::Result<Session> {
+    let threads = placement.threads.max(1);
+    let builder = Session::builder(env)?;
+    let builder = match placement.device {
+        Device::Cuda(n) => builder.with_execution_providers([ort::ep::CUDA::default()
+            .with_device_id(i32::try_from(n).unwrap_or(i32::MAX))
+            .build()
+            .error_on_failure()])?,
+        Device::Cpu | Device::Auto => builder,
+    };
+    builder
         // Memory patterns are planned per input shape and kept: with tiles of several shapes
         // (edge tiles) they held 0.9 GB more at 4K for no speed (docs/results/speed-work.md).
         // The CPU arena stays: without it inference was 1.3-1.6x slower.
@@ -91,7 +117,7 @@ struct Opened {
 }
 
 impl Opened {
-    fn open(env: &ort::environment::Environment, path: &Path, threads: usize) -> Result<Opened, EngineError> {
+    fn open(env: &ort::environment::Environment, path: &Path, placement: Placement) -> Result<Opened, EngineError> {
         match std::fs::metadata(path) {
             Ok(m) if m.is_file() => {}
             Ok(_) => return Err(model_error(path, "not a file")),
@@ -110,7 +136,7 @@ impl Opened {
                 _ => model_error(path, format!("cannot read: {e}")),
             })?;
         let session =
-            build_session(env, path, threads.max(1)).map_err(|e| model_error(path, format!("cannot load: {e}")))?;
+            build_session(env, path, placement).map_err(|e| model_error(path, format!("cannot load: {e}")))?;
         let meta = {
             let fail = |e: ort::Error| model_error(path, format!("cannot read metadata: {e}"));
             let meta = session.metadata().map_err(fail)?;
@@ -192,9 +218,9 @@ impl Network {
         path: &Path,
         variant: Variant,
         component: Component,
-        threads: usize,
+        placement: Placement,
     ) -> Result<Network, EngineError> {
-        let model = Opened::open(env, path, threads)?;
+        let model = Opened::open(env, path, placement)?;
         let common = model.common(contract::CONTRACT_VERSION, V1_HINT, variant)?;
         model.expect(keys::COMPONENT, component.name(), " (the file's name)")?;
         model.expect(keys::KERNEL_SIZE, &contract::KERNEL_SIZE.to_string(), "")?;
@@ -264,9 +290,9 @@ impl MultiScaleNetwork {
         env: &ort::environment::Environment,
         path: &Path,
         variant: Variant,
-        threads: usize,
+        placement: Placement,
     ) -> Result<MultiScaleNetwork, EngineError> {
-        let model = Opened::open(env, path, threads)?;
+        let model = Opened::open(env, path, placement)?;
         let common = model.common(contract::CONTRACT_V2, V2_HINT, variant)?;
         let kernel_size: usize = model.number(keys::KERNEL_SIZE)?;
         if kernel_size % 2 == 0 {
@@ -482,7 +508,7 @@ impl VariantModel {
 fn load_variant(
     env: &ort::environment::Environment,
     dir: &Path,
-    threads: usize,
+    placement: Placement,
 ) -> Result<Option<VariantModel>, EngineError> {
     let v2 = dir.join("model.onnx");
     let v1 = Component::ALL.map(|c| dir.join(format!("{}.onnx", c.name())));
@@ -507,12 +533,12 @@ fn load_variant(
         ));
     }
     if v2.exists() {
-        let net = MultiScaleNetwork::load(env, &v2, variant, threads)?;
+        let net = MultiScaleNetwork::load(env, &v2, variant, placement)?;
         return Ok(Some(VariantModel { variant, features: net.info.features, networks: Networks::MultiScale(net) }));
     }
     let [d, s] = &v1;
-    let diffuse = Network::load(env, d, variant, Component::Diffuse, threads)?;
-    let specular = Network::load(env, s, variant, Component::Specular, threads)?;
+    let diffuse = Network::load(env, d, variant, Component::Diffuse, placement)?;
+    let specular = Network::load(env, s, variant, Component::Specular, placement)?;
     if diffuse.info.features != specular.info.features {
         return Err(model_error(
             dir,
@@ -531,7 +557,7 @@ fn load_variant(
 pub fn load_models(
     env: &ort::environment::Environment,
     dir: &Path,
-    threads: usize,
+    placement: Placement,
 ) -> Result<Vec<VariantModel>, EngineError> {
     let mut dirs: Vec<PathBuf> = match std::fs::read_dir(dir) {
         Ok(entries) => entries
@@ -545,7 +571,7 @@ pub fn load_models(
     dirs.sort();
     let mut models = Vec::new();
     for d in dirs {
-        if let Some(m) = load_variant(env, &d, threads)? {
+        if let Some(m) = load_variant(env, &d, placement)? {
             models.push(m);
         }
     }

@@ -13,6 +13,12 @@ use ort::environment::Environment;
 pub const ORT_VERSION: &str = "1.31.1";
 
 static ENVIRONMENT: OnceLock<Result<Environment, String>> = OnceLock::new();
+static LIBRARY: OnceLock<PathBuf> = OnceLock::new();
+
+/// The library [`environment`] loaded, once it has.
+pub fn library() -> Option<&'static Path> {
+    LIBRARY.get().map(PathBuf::as_path)
+}
 
 /// Where the library is looked for, in order: an explicit path, `$ORT_DYLIB_PATH`,
 /// `$MCDENOISE_HOME/lib`, `~/.cache/mcdenoise/lib`, the executable's directory and its
@@ -60,6 +66,7 @@ pub fn environment(explicit: Option<&Path>) -> Result<&'static Environment, Stri
             };
             let builder =
                 ort::init_from(path).map_err(|e| format!("cannot load ONNX Runtime from {}: {e}", path.display()))?;
+            let _ = LIBRARY.set(path.clone());
             builder
                 .with_name("mcdenoise")
                 .with_telemetry(false)

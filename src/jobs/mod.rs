@@ -145,6 +145,7 @@ impl Settings {
         engine.tile_v2 = args.tile_v2;
         engine.threads = args.threads_per_worker();
         engine.ort_library = args.ort_library.clone();
+        engine.device = args.device;
         Settings {
             capacity: args.queue_capacity,
             result_ttl: args.result_ttl,

@@ -6,7 +6,7 @@ Denoise, with the engine's own metrics.
 
 Each `--method NAME=MODELS_DIR[:VARIANT]` denoises every frame with `mcdenoise run`
 (tiled, as served). `--oidn` runs OIDN (pyoidn, HDR, with albedo and normal, quality
-high) on the same frames' color (diffuse + specular). All metrics (RelMSE, DSSIM, PSNR,
+high, or the qualities `--oidn-quality` names) on the same frames' color (diffuse + specular). All metrics (RelMSE, DSSIM, PSNR,
 SMAPE) come from the engine (`mcdenoise run --reference` / `mcdenoise metrics`), so every
 method is measured by the same code. Writes `results.jsonl` (one row per frame and
 method) and `results.md` (means per method, per scene and per sample count).
@@ -78,6 +78,11 @@ def run_oidn(noisy: str, out: Path, quality: str = "high") -> float:
     seconds = time.perf_counter() - t
     write_exr(out, {c: den[..., i] for i, c in enumerate("RGB")})
     return seconds
+
+
+def oidn_method(quality: str) -> str:
+    """The method name of OIDN at `quality` in the results (`oidn` is quality high)."""
+    return "oidn" if quality == "high" else f"oidn-{quality}"
 
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -170,7 +175,7 @@ def outlier_check(r: dict, base: dict, a, tmp: Path, clean: dict[str, float], se
             rep = run_engine(path, r["reference"], models, variant or None, tmp / "i.exr", a.threads, mode)
             row(label, rep["metrics"]["output"]["relmse"])
     if a.oidn:
-        run_oidn(path, tmp / "oidn-injected.exr")
+        run_oidn(path, tmp / "oidn-injected.exr", a.oidn_first)
         row("oidn", metrics(tmp / "oidn-injected.exr", r["reference"])["relmse"])
     return rows
 
@@ -272,6 +277,9 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="val")
     p.add_argument("--method", action="append", default=[], metavar="NAME=DIR[:VARIANT]")
     p.add_argument("--oidn", action="store_true", help="also evaluate Intel Open Image Denoise")
+    p.add_argument("--oidn-quality", default="high",
+                   help="OIDN's qualities, comma-separated (high, balanced, fast): methods `oidn` (high) and "
+                        "`oidn-<quality>`; the crops and the outlier check use the first")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--limit", type=int, default=None, help="at most this many frames")
     p.add_argument("--crops", type=int, default=0, metavar="N",
@@ -287,6 +295,10 @@ def main(argv=None) -> int:
     records = [r for r in manifest_frames(a.data) if r.get("split") == a.split][: a.limit]
     if not records:
         raise SystemExit(f"{a.data}: no frames in split {a.split!r}")
+    qualities = [q.strip() for q in a.oidn_quality.split(",") if q.strip()]
+    if not qualities or any(q not in ("high", "balanced", "fast") for q in qualities):
+        raise SystemExit(f"--oidn-quality {a.oidn_quality!r}: name one or more of high, balanced, fast")
+    a.oidn_first = qualities[0]
     rows = []
     outlier_rows = []
     skipped: dict[str, list[str]] = {}  # method -> frames it cannot take
@@ -310,12 +322,16 @@ def main(argv=None) -> int:
                 rows.append({**base, "method": name, **rep["metrics"]["output"],
                              "seconds": rep["timings_ms"]["total"] / 1e3})
             if a.oidn:
-                secs = run_oidn(r["noisy"], Path(tmp) / "oidn.exr")
-                rows.append({**base, "method": "oidn", **metrics(Path(tmp) / "oidn.exr", r["reference"]), "seconds": secs})
+                for k, quality in enumerate(qualities):
+                    name = oidn_method(quality)
+                    secs = run_oidn(r["noisy"], Path(tmp) / f"{name}.exr", quality)
+                    rows.append({**base, "method": name, **metrics(Path(tmp) / f"{name}.exr", r["reference"]),
+                                 "seconds": secs})
             if a.outliers:
                 frame_rows = [x for x in rows if x["frame"] == base["frame"]]
-                clean = {("oidn" if x["method"] == "oidn" else f"{x['method']} (fireflies auto)"): x["relmse"]
-                         for x in frame_rows if x["method"] != "input"}
+                clean = {f"{x['method']} (fireflies auto)": x["relmse"] for x in frame_rows
+                         if x["method"] != "input" and not x["method"].startswith("oidn")}
+                clean.update({"oidn": x["relmse"] for x in frame_rows if x["method"] == oidn_method(qualities[0])})
                 outlier_rows += outlier_check(r, base, a, Path(tmp), clean, seed=len(outlier_rows) + 22)
             if lowest.get(base["scene"]) == base["spp"]:
                 (out / "crops").mkdir(exist_ok=True)
@@ -326,7 +342,7 @@ def main(argv=None) -> int:
                     if name in ran:
                         images[name] = rgb_of(Path(tmp) / f"{name}.exr")
                 if a.oidn:
-                    images["OIDN"] = rgb_of(Path(tmp) / "oidn.exr")
+                    images["OIDN"] = rgb_of(Path(tmp) / f"{oidn_method(qualities[0])}.exr")
                 images["reference"] = rgb_of(r["reference"])
                 save_crops(images, out / "crops" / f"{base['scene']}.png")
             print(f"{base['frame']}: " + ", ".join(f"{x['method']} {x['relmse']:.4g}" for x in rows if x["frame"] == base["frame"]), flush=True)
