@@ -79,13 +79,10 @@ def load_raw(record: dict, cache: Path | None) -> dict[str, np.ndarray | float]:
     return out
 
 
-def tile_to_smallest(arrays: list[dict]) -> list[dict]:
-    """Frames of several sizes as tiles of the smallest: each larger frame is cut into
-    non-overlapping tiles of that height and width (a remainder at the right and bottom is
-    dropped); every tile keeps its frame's maxima, which the preprocessing normalises by,
-    and its name, sample count and scene."""
-    h = min(a["raw"].shape[-2] for a in arrays)
-    w = min(a["raw"].shape[-1] for a in arrays)
+def tile_to(arrays: list[dict], h: int, w: int) -> list[dict]:
+    """Frames cut into non-overlapping tiles of h x w (a remainder at the right and bottom
+    is dropped; a frame smaller than a tile gives none); every tile keeps its frame's
+    maxima, which the preprocessing normalises by, and its name, sample count and scene."""
     out = []
     for a in arrays:
         H, W = a["raw"].shape[-2:]
@@ -96,29 +93,64 @@ def tile_to_smallest(arrays: list[dict]) -> list[dict]:
     return out
 
 
+def tile_to_smallest(arrays: list[dict]) -> list[dict]:
+    """Frames of several sizes as tiles of the smallest height and width ([`tile_to`])."""
+    return tile_to(arrays, min(a["raw"].shape[-2] for a in arrays), min(a["raw"].shape[-1] for a in arrays))
+
+
 class FrameSet:
-    """Frames of one split as device tensors: raw [F, 20, H, W], ref [F, 6, H, W], maxima [F, 2]."""
+    """Frames of one split as device tensors: raw [F, 20, H, W], ref [F, 6, H, W], maxima [F, 2].
+
+    `refresh()` adds the frames of scenes completed since (a data set still being rendered
+    beside the training), cut to the set's size like the first ones."""
 
     def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None,
                  cache: bool = False):
+        self.dirs, self.split, self.device, self.limit, self.cache = dirs, split, device, limit, cache
+        self.loaded: set[str] = set()  # noisy frame paths
+        self.names, self.spp, self.scenes = [], [], []
+        self.raw = self.ref = self.maxima = None
+        self.refresh()
+
+    def refresh(self) -> int:
+        """Loads the frames not loaded yet; returns how many tiles (frames) were added."""
         recs = []
-        for d in dirs:
-            recs += [(r, Path(d)) for r in manifest_frames(d) if r.get("split", "train") == split]
-        recs = recs[:limit]
+        for d in self.dirs:
+            if (Path(d) / "manifest.jsonl").exists():
+                recs += [(r, Path(d)) for r in manifest_frames(d) if r.get("split", "train") == self.split]
+        recs = [rd for rd in recs[:self.limit] if rd[0]["noisy"] not in self.loaded]
+        if not recs:
+            return 0
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
-            arrays = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if cache else None), recs))
+            arrays = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if self.cache else None), recs))
         for (r, _), a in zip(recs, arrays):
             a["meta"] = (Path(r["noisy"]).stem, int(r.get("spp", 0)), str(r.get("scene", "")))
-        if len({a["raw"].shape for a in arrays}) > 1:  # e.g. 128² frames from a CPU beside 256² from a GPU
-            arrays = tile_to_smallest(arrays)
-        self.names = [a["meta"][0] for a in arrays]
-        self.spp = [a["meta"][1] for a in arrays]
-        self.scenes = [a["meta"][2] for a in arrays]
-        self.raw = torch.from_numpy(np.stack([a["raw"] for a in arrays])).to(device) if arrays else None
-        self.ref = torch.from_numpy(np.stack([a["ref"] for a in arrays])).to(device) if arrays else None
-        self.maxima = torch.from_numpy(np.stack([a["maxima"] for a in arrays])).to(device) if arrays else None
+            self.loaded.add(r["noisy"])
+        # Frames of several sizes (128² from a CPU beside 256² from a GPU) are cut into tiles
+        # of the smallest; frames added later, into tiles of the size the set has.
+        if self.raw is not None:
+            h, w = self.raw.shape[-2:]
+        else:
+            h, w = min(a["raw"].shape[-2] for a in arrays), min(a["raw"].shape[-1] for a in arrays)
+        small = sum(a["raw"].shape[-2] < h or a["raw"].shape[-1] < w for a in arrays)
+        if small:
+            print(f"{small} {self.split} frames smaller than {w}x{h} left out", file=sys.stderr, flush=True)
+        arrays = tile_to(arrays, h, w)
+        if not arrays:
+            return 0
+        self.names += [a["meta"][0] for a in arrays]
+        self.spp += [a["meta"][1] for a in arrays]
+        self.scenes += [a["meta"][2] for a in arrays]
+        new = {k: torch.from_numpy(np.stack([a[k] for a in arrays])).to(self.device) for k in ("raw", "ref", "maxima")}
+        if self.raw is None:
+            self.raw, self.ref, self.maxima = new["raw"], new["ref"], new["maxima"]
+        else:
+            self.raw = torch.cat([self.raw, new["raw"]])
+            self.ref = torch.cat([self.ref, new["ref"]])
+            self.maxima = torch.cat([self.maxima, new["maxima"]])
+        return len(arrays)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -316,6 +348,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--time-budget", type=float, default=None,
                    help="fit the schedule to this many seconds of training: after 50 steps the step count is set "
                         "from the measured rate (and kept on resume)")
+    p.add_argument("--reload-every", type=float, default=0.0, metavar="S",
+                   help="every S seconds, add the training frames of scenes completed since (a data set being "
+                        "rendered beside the training); 0: never. Validation frames stay those of the start")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -417,8 +452,13 @@ def main(argv=None) -> int:
                    step=step, steps=a.steps, best=best, elapsed=time.time() - t0)
 
     stop = False
-    t_fit = t_run = time.time()
+    t_fit = t_run = t_reload = time.time()
     while step < a.steps and not stop:
+        if a.reload_every > 0 and time.time() - t_reload >= a.reload_every:
+            t_reload = time.time()
+            added = train.refresh()
+            if added:
+                print(f"step {step}: {added} training frames added, {len(train)} in all", file=sys.stderr, flush=True)
         raw, ref, maxima = crops(train, a.batch, a.patch, g)
         raw, ref = augment(raw, ref, g, a)
         b = batch_inputs(raw, ref, maxima, a.cov_dropout, g, crop=a.patch)
@@ -440,7 +480,8 @@ def main(argv=None) -> int:
             fitted = True
             print(f"{rate:.1f} steps/s: schedule fitted to {a.steps} steps", file=sys.stderr, flush=True)
         if step % 20 == 0:
-            row = {"step": step, "loss": float(loss.detach()), **parts, "lr": sched.get_last_lr()[0], "time": time.time() - t0}
+            row = {"step": step, "loss": float(loss.detach()), **parts, "lr": sched.get_last_lr()[0], "time": time.time() - t0,
+                   "frames": len(train)}
             log.write(json.dumps(row) + "\n")
             log.flush()
             if step % 100 == 0:

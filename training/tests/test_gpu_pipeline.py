@@ -83,3 +83,19 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
 
     records = manifest_frames(dest)
     assert records and all(r["split"] == "test" and Path(r["noisy"]).is_file() for r in records)
+
+
+@pytest.mark.skipif(not SCRIPT.exists(), reason="scripts/gpu-pipeline missing")
+def test_training_takes_the_scenes_a_background_render_completes(tmp_path):
+    home = tmp_path / "home"
+    env = {**os.environ, "GPU_HOME": str(home), "DEVICE": "cpu", "PY": sys.executable, "WORKERS": "2",
+           "VAL_WORKERS": "1", "TEST_WORKERS": "0", "SIZE": "32", "SPP": "2,8", "REF_SPP": "16", "PATCH": "16",
+           "BATCH": "2", "VAL_FRAMES": "2", "RUNS": f"r=--l1 1 {TINY}"}
+    res = _run({**env, "BACKGROUND": "1"}, "render", "20")
+    assert "rendering in the background" in res.stderr
+    # Training waits for a training and a validation scene, then adds scenes as they come.
+    _run({**env, "RELOAD": "1", "DATA_WAIT": "120"}, "train", "30", timeout=200)
+    config = json.loads((home / "runs" / "r" / "config.json").read_text())
+    assert config["reload_every"] == 1.0 and any(d.endswith("/data/w1") for d in config["data"])
+    assert (home / "models" / "r" / "full" / "model.onnx").is_file()
+    assert (home / "runs" / "r" / "val.jsonl").read_text().strip()

@@ -1,5 +1,7 @@
 """Frames of several sizes train together: the larger ones are cut into tiles of the smallest."""
 
+import json
+
 import numpy as np
 
 from mcdenoise_train.train_ms import tile_to_smallest
@@ -25,3 +27,34 @@ def test_larger_frames_become_tiles_of_the_smallest_size():
     # A remainder smaller than a tile is dropped: 17x9 gives two 8x8 tiles from its top-left.
     assert np.array_equal(tiles[7]["ref"], odd["ref"][:, :8, :8])
     assert np.array_equal(tiles[8]["ref"], odd["ref"][:, 8:16, :8])
+
+
+def _write(root, name, h, w, seed, split="train"):
+    from mcdenoise_train.exr import write_exr
+    from mcdenoise_train.frames import synthetic_frame
+
+    ch = synthetic_frame(h, w, seed=seed)
+    write_exr(root / f"{name}.exr", ch)
+    write_exr(root / f"{name}-ref.exr", ch)
+    with open(root / "manifest.jsonl", "a") as m:
+        m.write(json.dumps({"scene": name, "spp": 4, "split": split, "noisy": f"{name}.exr",
+                            "reference": f"{name}-ref.exr"}) + "\n")
+
+
+def test_a_frame_set_takes_the_scenes_completed_since(tmp_path):
+    """A data set rendered beside the training: refresh() adds the frames that appeared, cut
+    to the set's size; frames smaller than it are left out; nothing is loaded twice."""
+    import torch
+
+    from mcdenoise_train.train_ms import FrameSet
+
+    _write(tmp_path, "a", 16, 16, 1)
+    _write(tmp_path, "v", 16, 16, 2, split="val")
+    fs = FrameSet([str(tmp_path)], "train", torch.device("cpu"))
+    assert len(fs) == 1 and fs.raw.shape[-2:] == (16, 16) and fs.refresh() == 0
+    _write(tmp_path, "b", 32, 48, 3)  # 2 x 3 tiles of 16²
+    _write(tmp_path, "c", 8, 8, 4)  # smaller than the set's frames: left out
+    assert fs.refresh() == 6
+    assert len(fs) == 7 and fs.raw.shape == (7, 20, 16, 16) and fs.ref.shape[0] == fs.maxima.shape[0] == 7
+    assert fs.names.count("b") == 6 and "c" not in fs.names
+    assert fs.refresh() == 0 and len(fs) == 7
