@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "training"))
 
 from mcdenoise_train.data import engine_binary  # noqa: E402
-from mcdenoise_train.evaluate import oidn_method  # noqa: E402
+from mcdenoise_train.evaluate import oidn_inputs, oidn_method  # noqa: E402
 from mcdenoise_train.exr import read_exr  # noqa: E402
 
 VARIANTS = {"default": "full", "nocov": "nocov", "lin2020": "lin2020"}
@@ -53,11 +53,7 @@ def time_engine(frame: str, models: str, variant: str, threads: int, runs: int) 
 def time_oidn(frame: str, quality: str, threads: int, runs: int) -> float:
     import pyoidn
 
-    ch = read_exr(frame)
-    rgb = lambda base: np.ascontiguousarray(np.stack([ch[f"{base}.{c}"] for c in "RGB"], -1).astype(np.float32))
-    normal = np.ascontiguousarray(np.stack([ch.get(f"normal.{c}", ch.get(f"normal.{x}")) for c, x in zip("RGB", "XYZ")],
-                                           -1).astype(np.float32))
-    color, albedo = rgb("diffuse") + rgb("specular"), np.clip(rgb("albedo"), 0, None)
+    color, albedo, normal = oidn_inputs(read_exr(frame))
     times = []
     for k in range(runs + 1):
         t = time.perf_counter()

@@ -309,7 +309,7 @@ async fn info(State(app): State<AppState>, Extension(caller): Extension<Caller>)
         "phase": app.service.phase(),
         "ready": app.service.is_ready(),
         "device": {
-            "kind": "cpu",
+            "kind": s.engine.device.to_string(),
             "cores": cores,
             "workers": s.workers,
             "threads_per_worker": s.engine.threads,

@@ -64,17 +64,22 @@ def metrics(image: Path, reference: str) -> dict:
     return json.loads(res.stdout)
 
 
-def run_oidn(noisy: str, out: Path, quality: str = "high") -> float:
-    import pyoidn
-
-    ch = read_exr(noisy)
+def oidn_inputs(ch: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OIDN's color (diffuse + specular), albedo and normal of a frame's channels, [H, W, 3]
+    contiguous float32."""
     rgb = lambda base: np.stack([ch[f"{base}.{c}"] for c in "RGB"], -1).astype(np.float32)
     color = rgb("diffuse") + rgb("specular")
     albedo = np.clip(rgb("albedo"), 0, None)
     normal = np.stack([ch.get(f"normal.{a}", ch.get(f"normal.{b}")) for a, b in zip("RGB", "XYZ")], -1).astype(np.float32)
+    return np.ascontiguousarray(color), np.ascontiguousarray(albedo), np.ascontiguousarray(normal)
+
+
+def run_oidn(noisy: str, out: Path, quality: str = "high") -> float:
+    import pyoidn
+
+    color, albedo, normal = oidn_inputs(read_exr(noisy))
     t = time.perf_counter()
-    den = pyoidn.denoise(np.ascontiguousarray(color), np.ascontiguousarray(albedo), np.ascontiguousarray(normal),
-                         hdr=True, quality=quality)
+    den = pyoidn.denoise(color, albedo, normal, hdr=True, quality=quality)
     seconds = time.perf_counter() - t
     write_exr(out, {c: den[..., i] for i, c in enumerate("RGB")})
     return seconds
@@ -150,9 +155,11 @@ def summarize_outliers(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def outlier_check(r: dict, base: dict, a, tmp: Path, clean: dict[str, float], seed: int) -> list[dict]:
-    """The firefly check of one frame: every method on an injected copy; `clean` holds the
-    RelMSE of the methods on the frame itself (keys as the rows' labels)."""
+def outlier_check(r: dict, base: dict, a, tmp: Path, clean: dict[str, float], seed: int,
+                  oidn_quality: str = "high") -> list[dict]:
+    """The firefly check of one frame: every method on an injected copy (OIDN at
+    `oidn_quality`, labelled `oidn`); `clean` holds the RelMSE of the methods on the frame
+    itself (keys as the rows' labels)."""
     injected, _ = inject_outliers(read_exr(r["noisy"]), a.outliers, seed)
     path = tmp / "injected.exr"
     write_exr(path, injected)
@@ -175,7 +182,7 @@ def outlier_check(r: dict, base: dict, a, tmp: Path, clean: dict[str, float], se
             rep = run_engine(path, r["reference"], models, variant or None, tmp / "i.exr", a.threads, mode)
             row(label, rep["metrics"]["output"]["relmse"])
     if a.oidn:
-        run_oidn(path, tmp / "oidn-injected.exr", a.oidn_first)
+        run_oidn(path, tmp / "oidn-injected.exr", oidn_quality)
         row("oidn", metrics(tmp / "oidn-injected.exr", r["reference"])["relmse"])
     return rows
 
@@ -298,7 +305,6 @@ def main(argv=None) -> int:
     qualities = [q.strip() for q in a.oidn_quality.split(",") if q.strip()]
     if not qualities or any(q not in ("high", "balanced", "fast") for q in qualities):
         raise SystemExit(f"--oidn-quality {a.oidn_quality!r}: name one or more of high, balanced, fast")
-    a.oidn_first = qualities[0]
     rows = []
     outlier_rows = []
     skipped: dict[str, list[str]] = {}  # method -> frames it cannot take
@@ -332,7 +338,8 @@ def main(argv=None) -> int:
                 clean = {f"{x['method']} (fireflies auto)": x["relmse"] for x in frame_rows
                          if x["method"] != "input" and not x["method"].startswith("oidn")}
                 clean.update({"oidn": x["relmse"] for x in frame_rows if x["method"] == oidn_method(qualities[0])})
-                outlier_rows += outlier_check(r, base, a, Path(tmp), clean, seed=len(outlier_rows) + 22)
+                outlier_rows += outlier_check(r, base, a, Path(tmp), clean, seed=len(outlier_rows) + 22,
+                                              oidn_quality=qualities[0])
             if lowest.get(base["scene"]) == base["spp"]:
                 (out / "crops").mkdir(exist_ok=True)
                 ch = read_exr(r["noisy"])

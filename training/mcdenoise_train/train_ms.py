@@ -130,14 +130,14 @@ class FrameSet:
             self.loaded.add(r["noisy"])
         # Frames of several sizes (128² from a CPU beside 256² from a GPU) are cut into tiles
         # of the smallest; frames added later, into tiles of the size the set has.
-        if self.raw is not None:
-            h, w = self.raw.shape[-2:]
+        if self.raw is None:
+            arrays = tile_to_smallest(arrays)
         else:
-            h, w = min(a["raw"].shape[-2] for a in arrays), min(a["raw"].shape[-1] for a in arrays)
-        small = sum(a["raw"].shape[-2] < h or a["raw"].shape[-1] < w for a in arrays)
-        if small:
-            print(f"{small} {self.split} frames smaller than {w}x{h} left out", file=sys.stderr, flush=True)
-        arrays = tile_to(arrays, h, w)
+            h, w = self.raw.shape[-2:]
+            small = sum(a["raw"].shape[-2] < h or a["raw"].shape[-1] < w for a in arrays)
+            if small:
+                print(f"{small} {self.split} frames smaller than {w}x{h} left out", file=sys.stderr, flush=True)
+            arrays = tile_to(arrays, h, w)
         if not arrays:
             return 0
         self.names += [a["meta"][0] for a in arrays]
