@@ -340,7 +340,12 @@ async fn follow_shared(
     loop {
         tokio::select! {
             change = changes.next() => match change {
-                Some(change) => service.apply_change(change),
+                // Off the async threads: a change may remove a job's files. Awaited, so
+                // changes stay in order.
+                Some(change) => {
+                    let service = service.clone();
+                    let _ = tokio::task::spawn_blocking(move || service.apply_change(change)).await;
+                }
                 None => {
                     tracing::warn!("the watch of the shared job records ended; opening it again");
                     loop {
@@ -353,7 +358,8 @@ async fn follow_shared(
                         match reopened.await {
                             Ok((watch, records)) => {
                                 changes = Box::pin(watch);
-                                service.resync(records);
+                                let service = service.clone();
+                                let _ = tokio::task::spawn_blocking(move || service.resync(records)).await;
                                 break;
                             }
                             Err(e) => tracing::warn!(error = %e, "cannot watch the shared job records yet"),

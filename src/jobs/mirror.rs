@@ -48,6 +48,39 @@ fn insert(st: &mut State, r: JobRecord) {
     st.jobs.insert(r.id.clone(), Entry::new(r));
 }
 
+/// How far the watch has delivered the changes of the shared records without a gap: the
+/// jobs bucket's stream sequence (a record's revision) through which every change has been
+/// seen, 0 while unknown (at startup, after the watch was reopened, after a gap). The watch
+/// delivers the stream's messages in order, so a revision more than one past the cursor
+/// means a change was missed; [`JobService::reconcile`] then reads the unfinished jobs again,
+/// and skips that (a read per job every few seconds) while the cursor has reached the
+/// store's last sequence.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(super) struct WatchCursor {
+    through: u64,
+}
+
+impl WatchCursor {
+    /// The watch delivered the change of stream sequence `revision`.
+    fn saw(&mut self, revision: u64) {
+        if self.through > 0 && revision <= self.through + 1 {
+            self.through = self.through.max(revision);
+        } else if revision > self.through + 1 {
+            self.through = 0;
+        }
+    }
+
+    /// Whether every change through `last` was delivered.
+    fn caught_up(&self, last: u64) -> bool {
+        self.through > 0 && self.through >= last
+    }
+
+    /// Every change through `last` is in memory (read again by a full reconciliation).
+    fn reconciled(&mut self, last: u64) {
+        self.through = self.through.max(last);
+    }
+}
+
 /// The event that announces a record's new state to watchers.
 fn event_for(status: JobStatus) -> JobEvent {
     match status.record.state {
@@ -74,6 +107,11 @@ impl JobService {
     /// Applies a change from the shared store to memory (a later revision than the one held
     /// replaces it; this replica's own writes were applied when they were made).
     pub(crate) fn apply_change(&self, change: Change) {
+        let revision = match &change {
+            Change::Put { record, .. } => record.rev,
+            Change::Deleted { revision, .. } => *revision,
+        };
+        self.lock().watched.saw(revision);
         match change {
             Change::Put { record, own } => self.apply_record(*record, !own),
             Change::Deleted { id, revision } => {
@@ -205,19 +243,22 @@ impl JobService {
 
     /// Makes up for changes the watch did not deliver (it can miss one when its consumer
     /// is recreated under load): jobs no longer stored go, stored jobs not in memory come,
-    /// and unfinished jobs are read again. Run every few seconds. Blocking.
+    /// and, unless the watch delivered every change so far ([`WatchCursor`]), unfinished
+    /// jobs are read again. Run every few seconds. Blocking.
     pub(crate) fn reconcile(&self) -> Result<()> {
         let shared = self.shared().expect("shared mode").clone();
         let (last, stored) = shared.stored_ids()?;
         let (gone, read): (Vec<String>, Vec<String>) = {
             let st = self.lock();
+            let all = !st.watched.caught_up(last);
             let gone = st
                 .jobs
                 .iter()
                 .filter(|(id, e)| e.record.rev <= last && !stored.contains(*id))
                 .map(|(id, _)| id.clone())
                 .collect();
-            let unfinished = st.jobs.iter().filter(|(_, e)| !e.record.state.is_terminal()).map(|(id, _)| id.clone());
+            let unfinished =
+                st.jobs.iter().filter(|(_, e)| all && !e.record.state.is_terminal()).map(|(id, _)| id.clone());
             let missing = stored.iter().filter(|id| !st.jobs.contains_key(*id)).cloned();
             (gone, unfinished.chain(missing).collect())
         };
@@ -239,12 +280,14 @@ impl JobService {
         if fixed > 0 {
             tracing::info!(jobs = fixed, "the watch of the shared records had missed changes; applied now");
         }
+        self.lock().watched.reconciled(last);
         Ok(())
     }
 
     /// Brings memory in line with every stored record (after the watch was lost): newer
     /// records replace older ones, jobs no longer stored go.
     pub(crate) fn resync(&self, records: Vec<JobRecord>) {
+        self.lock().watched = WatchCursor::default();
         let ids: std::collections::HashSet<String> = records.iter().map(|r| r.id.clone()).collect();
         for record in records {
             self.apply_record(record, true);
@@ -516,5 +559,29 @@ impl JobService {
             }
         }
         Err(Error::Conflict(format!("job {id} keeps changing; retry the cancellation")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::WatchCursor;
+
+    #[test]
+    fn the_cursor_follows_contiguous_changes_and_forgets_on_a_gap() {
+        let mut c = WatchCursor::default();
+        c.saw(1);
+        assert!(!c.caught_up(1), "unknown until a reconciliation");
+        c.reconciled(5);
+        assert!(c.caught_up(5) && !c.caught_up(6));
+        c.saw(6);
+        c.saw(7);
+        c.saw(4); // an older change delivered again
+        assert!(c.caught_up(7));
+        c.saw(9); // 8 was missed
+        assert!(!c.caught_up(9) && !c.caught_up(1));
+        c.reconciled(9);
+        assert!(c.caught_up(9));
+        c.saw(10);
+        assert!(c.caught_up(10));
     }
 }

@@ -207,6 +207,9 @@ struct State {
     /// Queued jobs waiting out a backoff after a storage failure: (due, Unix ms; id). They
     /// enter the queue when due.
     delayed: Vec<(i64, String)>,
+    /// Shared mode: how far the watch has delivered the stored records' changes without a
+    /// gap ([`mirror::WatchCursor`]).
+    watched: mirror::WatchCursor,
 }
 
 struct Inner {
