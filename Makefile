@@ -93,7 +93,8 @@ train: setup-train build
 	  --variant $(VARIANT) $(TRAIN_ARGS) --resume --export $(CURDIR)/models
 
 ## Quality (docs/results.md): the noisy input, the default variant (`full` on frames with
-## covariance, `nocov` on frames without), `nocov`, `lin2020` (frames with covariance only)
+## covariance, `nocov` on frames without), `nocov`, `beauty` (each frame as a beauty-only file
+## gives it: no split, no variances), `lin2020` (frames with covariance only)
 ## and OIDN (high, balanced, fast) on the validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
 ## and sample count, with plots and side-by-side crops, and the firefly check (20 injected
 ## outliers per frame, with and without the handling; docs/fireflies.md); then quality against
@@ -102,7 +103,7 @@ TEST_DATA ?= data-test
 # The data generator's test sets (--test-scenes) carry split `test`; older sets `val`.
 TEST_SPLIT ?= test
 TEST_OUT ?= test-both
-EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method lin2020=$(CURDIR)/models:lin2020 --oidn --oidn-quality high,balanced,fast --crops 4 --outliers 20
+EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method beauty=$(CURDIR)/models:beauty --method lin2020=$(CURDIR)/models:lin2020 --oidn --oidn-quality high,balanced,fast --crops 4 --outliers 20
 eval: setup-train build
 	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
 	  --out $(CURDIR)/docs/results/val
@@ -167,3 +168,14 @@ MS_ARGS ?= --steps 6000 --batch 8 --patch 64 --val-every 250 --val-frames 24
 train-ms: setup-train build
 	cd training && $(PY) -m mcdenoise_train.train_ms --data $(abspath $(DATA)) --out $(abspath $(MS_RUN)) \
 	  --device cpu $(MS_ARGS) --resume --export $(abspath $(MS_RUN))/models
+
+## The `beauty` variant (frames without the diffuse/specular split, docs/model-contract.md):
+## the shipped msnet fine-tuned on beauty-only patches (train_ms --beauty), exported as
+## BEAUTY_RUN/models/beauty; copy it to models/beauty once evaluated.
+BEAUTY_RUN ?= runs/beauty
+BEAUTY_ARGS ?= --init $(CURDIR)/training/checkpoints/msnet.pt --steps 20000 --batch 8 --patch 64 --lr 5e-4 \
+  --ssim 0.2 --val-every 2500 --val-frames 48
+.PHONY: train-beauty
+train-beauty: setup-train build
+	cd training && $(PY) -m mcdenoise_train.train_ms --data $(abspath $(DATA)) --out $(abspath $(BEAUTY_RUN)) \
+	  --device cpu --beauty $(BEAUTY_ARGS) --resume --export $(abspath $(BEAUTY_RUN))/models

@@ -30,8 +30,9 @@ impl FrameArgs {
     }
 }
 
-/// Which model variant to use: `auto` (`full` if the frame has covariance and `full` is
-/// loaded, else `nocov`) or the name of a loaded variant (`full`, `nocov`, `lin2020`, ...).
+/// Which model variant to use: `auto` (`beauty` for a frame without the diffuse/specular
+/// split when `beauty` is loaded, `full` if the frame has covariance and `full` is loaded,
+/// else `nocov`) or the name of a loaded variant (`full`, `nocov`, `beauty`, `lin2020`, ...).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct VariantArg(Option<Variant>);
 
@@ -93,7 +94,7 @@ pub struct RunArgs {
     /// unchanged); comma-separated, combinable.
     #[arg(long, value_delimiter = ',')]
     pub layers: Vec<String>,
-    /// Model variant: `auto`, or the name of a loaded variant (`full`, `nocov`, `lin2020`, ...).
+    /// Model variant: `auto`, or the name of a loaded variant (`full`, `nocov`, `beauty`, `lin2020`, ...).
     #[arg(long, default_value_t)]
     pub variant: VariantArg,
     #[command(flatten)]
@@ -130,7 +131,7 @@ pub struct PreprocessArgs {
     /// Reference frame: adds the training targets.
     #[arg(long)]
     pub reference: Option<PathBuf>,
-    /// Feature set: `auto` (`full` if the frame has covariance, else `nocov`), `full` or `nocov`.
+    /// Feature set: `auto` (`full` if the frame has covariance, else `nocov`), `full`, `nocov` or `beauty` (the `nocov` inputs of the frame as the `beauty` variant takes it: the beauty in the diffuse slot, no variances).
     #[arg(long, default_value_t)]
     pub variant: VariantArg,
     /// The inputs are those `mcdenoise run` gives the networks, fireflies handled alike.
@@ -217,6 +218,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "flops_per_pixel": flops,
         "sanitized": out.sanitized,
         "missing_variances": out.missing_variances,
+        "warnings": out.warnings,
         "fireflies": {
             "mode": fireflies.mode,
             "strength": fireflies.strength,
@@ -268,8 +270,8 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
             bail!("{}: --variant full needs a `covariance` channel", args.input.display())
         }
         Some(Variant::Full) => FeatureSet::Full,
-        Some(Variant::Nocov) => FeatureSet::Nocov,
-        Some(v) => bail!("--variant {v}: `preprocess` writes the `full` or the `nocov` inputs (auto, full or nocov)"),
+        Some(Variant::Nocov) | Some(Variant::Beauty) => FeatureSet::Nocov,
+        Some(v) => bail!("--variant {v}: `preprocess` writes the `full`, `nocov` or `beauty` inputs (auto, full, nocov or beauty)"),
         None if frame.has(Buffer::Covariance) => FeatureSet::Full,
         None => FeatureSet::Nocov,
     };
@@ -279,6 +281,9 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     let (handled, report) = engine::handle_fireflies(&frame, args.fireflies.settings());
     if let Some(handled) = handled {
         frame = handled;
+    }
+    if args.variant.resolve() == Some(Variant::Beauty) {
+        frame = frame.to_beauty();
     }
     let (w, h) = (frame.width, frame.height);
     let stats = engine::FrameStats::of(&frame);

@@ -213,7 +213,11 @@ pub fn run(
     let t = Instant::now();
     let sanitized = std::mem::take(&mut frame.sanitized);
     let missing_variances = std::mem::take(&mut frame.missing_variances);
-    let warnings = std::mem::take(&mut frame.warnings);
+    let warnings = if frame.beauty_only && out.variant != Variant::Beauty {
+        vec![crate::frame::renderers::no_split_warning(out.variant.name())]
+    } else {
+        Vec::new()
+    };
     for (name, value) in attributes(&*denoiser, out.variant) {
         carried.header.set_text(name, &value);
     }

@@ -129,6 +129,36 @@ fn without_full_or_nocov_a_variant_must_be_named() {
     assert!(e.denoise(&synthetic_frame(20, 20, true), Variant::parse("wide"), &mut |_| true).is_ok());
 }
 
+#[test]
+fn frames_without_the_split_go_to_the_beauty_variant() {
+    // `beauty`: the tiny `nocov` network under another name, so its results can be compared.
+    let tmp = tempfile::tempdir().unwrap();
+    for v in ["full", "nocov"] {
+        write(tmp.path(), v, "model.onnx", &read(&tiny_v2(), v, "model.onnx"));
+    }
+    let nocov = read(&tiny_v2(), "nocov", "model.onnx");
+    write(tmp.path(), "beauty", "model.onnx", &set_meta(&nocov, "mcdenoise.variant", "beauty"));
+    let mut e = engine_at(tmp.path(), 0);
+    assert_eq!(e.variants(), vec![Variant::Beauty, Variant::Full, Variant::Nocov]);
+
+    let split = synthetic_frame(40, 36, true);
+    let beauty = split.to_beauty();
+    let auto = e.denoise(&beauty, None, &mut |_| true).unwrap();
+    assert_eq!(auto.variant, Variant::Beauty);
+    assert!(auto.specular.iter().flatten().all(|v| *v == 0.0));
+    assert_eq!(e.denoise(&split, None, &mut |_| true).unwrap().variant, Variant::Full);
+    // Named for a frame with the split: the engine hands the network the same inputs.
+    let named = e.denoise(&split, Some(Variant::Beauty), &mut |_| true).unwrap();
+    let direct = e.denoise(&beauty, Some(Variant::Nocov), &mut |_| true).unwrap();
+    for c in 0..3 {
+        assert_eq!(named.color[c], auto.color[c]);
+        assert_eq!(named.color[c], direct.color[c]);
+    }
+    // Without a `beauty` model, `nocov` takes such frames.
+    let mut e = engine_at(&tiny_v2(), 0);
+    assert_eq!(e.denoise(&beauty, None, &mut |_| true).unwrap().variant, Variant::Nocov);
+}
+
 /// Loads a directory holding `full/model.onnx` edited by `edit`; returns the error.
 fn v2_error(edit: impl Fn(Vec<u8>) -> Vec<u8>) -> String {
     let tmp = tempfile::tempdir().unwrap();

@@ -242,12 +242,13 @@ fn a_frame_without_any_variance_is_accepted_and_reports_it() {
 
 #[test]
 fn cycles_frames_lacking_passes_are_named_in_blender_terms() {
-    // Without the Diffuse passes: accepted, all light taken as diffuse, and said so.
+    // Without the Diffuse passes: accepted as a frame without the split, all light in the
+    // diffuse slot (the `beauty` variant's input).
     let (bytes, _) = cycles_frame(W, H, |p| !p.starts_with("Diffuse"));
     let frame = frame_of(&bytes);
-    assert_eq!(frame.warnings, [mcdenoise::frame::renderers::CYCLES_NO_DIFFUSE]);
+    assert!(frame.beauty_only);
     assert!(frame.plane(Buffer::Specular, 0).iter().all(|v| *v == 0.0));
-    assert!(frame_of(&cycles_frame(W, H, |_| true).0).warnings.is_empty());
+    assert!(!frame_of(&cycles_frame(W, H, |_| true).0).beauty_only);
     // Without Denoising Data: refused, saying which option to enable.
     let (bytes, _) = cycles_frame(W, H, |p| !p.starts_with("Denoising") && p != "Depth");
     let err = Frame::from_exr_bytes(&bytes, &Limits::default()).unwrap_err().to_string();
@@ -258,15 +259,47 @@ fn cycles_frames_lacking_passes_are_named_in_blender_terms() {
 }
 
 #[test]
-fn a_beauty_albedo_normal_frame_is_refused_naming_the_beauty_variant() {
+fn a_beauty_albedo_normal_frame_is_read_with_the_beauty_as_its_diffuse() {
+    let beauty: Vec<f32> = (0..W * H).map(|i| 0.25 + (i % 7) as f32).collect();
     let planes: Vec<_> = named_planes(W, H, false)
         .into_iter()
         .filter(|(n, _)| n.starts_with("albedo.") || n.starts_with("normal."))
-        .chain(["R", "G", "B"].map(|c| (c.to_string(), vec![0.5; W * H])))
+        .chain(["R", "G", "B"].map(|c| (c.to_string(), beauty.clone())))
         .collect();
+    let frame = frame_of(&exr_single(W, H, &planes, Sample::F32));
+    assert!(frame.beauty_only);
+    assert_eq!(frame.plane(Buffer::Diffuse, 1), &beauty[..]);
+    assert!(frame.plane(Buffer::Specular, 2).iter().all(|v| *v == 0.0));
+    assert!(frame.plane(Buffer::Depth, 0).iter().all(|v| *v == 0.0), "no depth: 0, no hit");
+    // A depth the file has is kept.
+    let with_depth: Vec<_> = planes.iter().cloned().chain([("depth.Z".to_string(), vec![3.0; W * H])]).collect();
+    let frame = frame_of(&exr_single(W, H, &with_depth, Sample::F32));
+    assert!(frame.beauty_only && frame.plane(Buffer::Depth, 0).iter().all(|v| *v == 3.0));
+    // Without normals it is refused, naming them.
+    let planes: Vec<_> = planes.into_iter().filter(|(n, _)| !n.starts_with("normal")).collect();
     let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
-    let err = err.to_string();
-    assert!(err.contains("only beauty (R,G,B), albedo and normal") && err.contains("`beauty` variant"), "{err}");
+    assert!(err.to_string().contains("normal.R"), "{err}");
+}
+
+#[test]
+fn a_split_frame_as_the_beauty_variant_takes_it() {
+    let planes = named_planes(W, H, true);
+    let frame = frame_of(&exr_single(W, H, &planes, Sample::F32));
+    assert!(!frame.beauty_only);
+    let b = frame.to_beauty();
+    assert!(b.beauty_only);
+    let sum = frame.diffuse_plus_specular();
+    for c in 0..3 {
+        assert_eq!(b.plane(Buffer::Diffuse, c), &sum[c][..]);
+        assert!(b.plane(Buffer::Specular, c).iter().all(|v| *v == 0.0));
+        assert_eq!(b.plane(Buffer::Albedo, c), frame.plane(Buffer::Albedo, c));
+    }
+    assert!(!b.has(Buffer::Covariance) && !b.has(Buffer::CovarianceVariance));
+    for var in [Buffer::DiffuseVariance, Buffer::SpecularVariance, Buffer::NormalVariance, Buffer::DepthVariance] {
+        assert!(b.planes(var).iter().flatten().all(|v| *v == 0.0), "{var:?}");
+    }
+    assert!(frame.plane(Buffer::DiffuseVariance, 0).iter().any(|v| *v != 0.0), "the original keeps its variances");
+    assert_eq!(b.plane(Buffer::Depth, 0), frame.plane(Buffer::Depth, 0));
 }
 
 // --- What a result keeps of its input ------------------------------------------------------

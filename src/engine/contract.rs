@@ -114,6 +114,11 @@ impl Variant {
     /// The variant the engine picks for frames without covariance.
     #[allow(non_upper_case_globals)]
     pub const Nocov: Variant = Variant::from_static("nocov");
+    /// The variant for frames without the diffuse/specular split (a beauty with albedo and
+    /// normal): a `nocov`-contract model fed the beauty in the diffuse slot, the specular
+    /// zero, no variances ([`crate::frame::Frame::to_beauty`]).
+    #[allow(non_upper_case_globals)]
+    pub const Beauty: Variant = Variant::from_static("beauty");
 
     const fn from_static(name: &str) -> Variant {
         let src = name.as_bytes();

@@ -185,11 +185,14 @@ impl Engine {
         self.models.iter().find(|m| m.variant == variant).map(VariantModel::flops_per_pixel)
     }
 
-    /// The variant for a frame: `full` when it has covariance and `full` is loaded, else
-    /// `nocov`.
+    /// The variant for a frame: `beauty` when it has no diffuse/specular split
+    /// ([`Frame::beauty_only`]) and `beauty` is loaded, `full` when it has covariance and
+    /// `full` is loaded, else `nocov`.
     pub fn select(&self, frame: &Frame) -> Result<Variant, EngineError> {
         let has = |v: Variant| self.models.iter().any(|m| m.variant == v);
-        if frame.has(Buffer::Covariance) && has(Variant::Full) {
+        if frame.beauty_only && has(Variant::Beauty) {
+            Ok(Variant::Beauty)
+        } else if frame.has(Buffer::Covariance) && has(Variant::Full) {
             Ok(Variant::Full)
         } else if has(Variant::Nocov) {
             if frame.has(Buffer::Covariance) {
@@ -248,6 +251,8 @@ impl Engine {
         let t = Instant::now();
         let (handled, report) = self.pool.install(|| handle_fireflies(frame, fireflies));
         let frame = handled.as_ref().unwrap_or(frame);
+        let beauty = (variant == Variant::Beauty).then(|| frame.to_beauty());
+        let frame = beauty.as_ref().unwrap_or(frame);
         timings.fireflies = t.elapsed();
 
         let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;

@@ -102,9 +102,9 @@ pub struct Frame {
     /// Variance buffers the file did not have, taken as 0
     /// ([`Frame::fill_missing_variances`]).
     pub missing_variances: Vec<String>,
-    /// What the file's renderer passes could only approximate (see
-    /// [`renderers::warnings`]); reported with the job.
-    pub warnings: Vec<String>,
+    /// The file has no diffuse/specular split, only a beauty: its diffuse is the beauty and
+    /// its specular zero ([`renderers::beauty_only`]); the `beauty` variant is made for it.
+    pub beauty_only: bool,
 }
 
 impl Frame {
@@ -120,7 +120,8 @@ impl Frame {
         if width == 0 || height == 0 {
             return Err(FrameError::Empty { width, height });
         }
-        let warnings = renderers::warnings(&planes.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>(), maps);
+        let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
+        let beauty_only = renderers::beauty_only(&names, maps);
         renderers::derive(&mut planes, width * height, maps);
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
         check_required(&names, required, maps)?;
@@ -147,7 +148,7 @@ impl Frame {
             }
             buffers[buffer as usize] = Some(Arc::new(taken));
         }
-        Ok(Frame { width, height, buffers, sanitized, missing_variances: Vec::new(), warnings })
+        Ok(Frame { width, height, buffers, sanitized, missing_variances: Vec::new(), beauty_only })
     }
 
     /// Fills the variance buffers the renderer did not write with 0 for every buffer that is
@@ -223,6 +224,29 @@ impl Frame {
             return [p[0].clone(), p[1].clone(), p[2].clone()];
         }
         self.diffuse_plus_specular()
+    }
+
+    /// The frame as the `beauty` variant takes it: the beauty (diffuse + specular) in the
+    /// diffuse slot, the specular zero, every variance zero, no covariance; albedo, normal
+    /// and depth as they are. A frame that is already [`Frame::beauty_only`] keeps its
+    /// buffers (only variances a caller added are zeroed).
+    pub fn to_beauty(&self) -> Frame {
+        let mut out = self.clone();
+        let n = self.pixels();
+        if !self.beauty_only {
+            let beauty = self.diffuse_plus_specular();
+            out.buffers[Buffer::Diffuse as usize] = Some(Arc::new(beauty.into()));
+            out.buffers[Buffer::Specular as usize] = Some(Arc::new(vec![vec![0f32; n]; 3]));
+        }
+        out.remove(Buffer::Covariance);
+        out.remove(Buffer::CovarianceVariance);
+        for var in Buffer::ALL.into_iter().filter_map(Buffer::variance) {
+            if out.has(var) {
+                out.buffers[var as usize] = Some(Arc::new(vec![vec![0f32; n]]));
+            }
+        }
+        out.beauty_only = true;
+        out
     }
 
     /// Diffuse + specular, per channel.

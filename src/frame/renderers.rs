@@ -114,11 +114,7 @@ pub fn recipes(names: &[&str], maps: &ChannelMaps) -> Vec<(String, Recipe)> {
     };
     let rgb = ["R", "G", "B"];
     let mut out = Vec::new();
-    let mut add = |prefix: &str, suffixes: &[&str], recipes: Vec<Recipe>| {
-        for (s, r) in suffixes.iter().zip(recipes) {
-            out.push((format!("{prefix}.{s}"), r));
-        }
-    };
+    let mut add = |prefix: &str, suffixes: &[&str], recipes: Vec<Recipe>| add_to(&mut out, prefix, suffixes, recipes);
 
     if !has(super::Buffer::Diffuse) && !has(super::Buffer::Specular) {
         let combined = pass(&["Combined"], &rgb);
@@ -180,22 +176,47 @@ pub fn recipes(names: &[&str], maps: &ChannelMaps) -> Vec<(String, Recipe)> {
             out.extend(keep);
         }
     }
+    // A beauty with albedo and normal but no split (what most renderers write by default):
+    // the beauty in the diffuse slot, a zero specular and, if the file has none, a zero
+    // depth ("no hit"), as the `beauty` variant takes them.
+    let beauty = beauty(names);
+    if beauty.color.len() == 3
+        && !derived(super::Buffer::Diffuse, &out)
+        && !derived(super::Buffer::Specular, &out)
+        && derived(super::Buffer::Albedo, &out)
+        && derived(super::Buffer::Normal, &out)
+    {
+        add_to(&mut out, "diffuse", &rgb, beauty.color.iter().map(|n| Recipe::Copy(n.to_string())).collect());
+        add_to(&mut out, "specular", &rgb, vec![Recipe::Zero, Recipe::Zero, Recipe::Zero]);
+        if !derived(super::Buffer::Depth, &out) {
+            add_to(&mut out, "depth", &["Z"], vec![Recipe::Zero]);
+        }
+    }
     out
 }
 
-/// The Cycles fallback: all light taken as diffuse.
-pub const CYCLES_NO_DIFFUSE: &str = "the frame has the Cycles Combined pass but not the Diffuse Direct, Indirect and \
-     Color passes: all light was treated as diffuse (divided by the albedo), so glossy highlights and reflections \
-     are denoised as texture; enable the Diffuse passes (View Layer Properties > Passes > Light) for the exact split";
-
-/// What [`recipes`] can only approximate for `names`, as messages for the job.
-pub fn warnings(names: &[&str], maps: &ChannelMaps) -> Vec<String> {
-    let fallback = recipes(names, maps).iter().any(|(n, r)| n == "specular.R" && *r == Recipe::Zero);
-    if fallback {
-        vec![CYCLES_NO_DIFFUSE.to_string()]
-    } else {
-        Vec::new()
+fn add_to(out: &mut Vec<(String, Recipe)>, prefix: &str, suffixes: &[&str], recipes: Vec<Recipe>) {
+    for (s, r) in suffixes.iter().zip(recipes) {
+        out.push((format!("{prefix}.{s}"), r));
     }
+}
+
+/// Whether a file with channels `names` has no diffuse/specular split, only a beauty (a
+/// Cycles Combined pass without the Diffuse passes included): [`recipes`] then derives its
+/// diffuse as the beauty and its specular as zero.
+pub fn beauty_only(names: &[&str], maps: &ChannelMaps) -> bool {
+    recipes(names, maps).iter().any(|(n, r)| n == "specular.R" && *r == Recipe::Zero)
+}
+
+/// What a job says when a frame without the diffuse/specular split ([`beauty_only`]) was
+/// denoised by a variant other than `beauty`.
+pub fn no_split_warning(variant: &str) -> String {
+    format!(
+        "the frame has no diffuse/specular split (a beauty only, or Cycles' Combined without the Diffuse Direct, \
+         Indirect and Color passes) and `{variant}` denoised it with all light taken as diffuse (divided by the \
+         albedo), so glossy highlights and reflections were denoised as texture; the `beauty` variant is made for \
+         such frames, or write the split (Cycles: View Layer Properties > Passes > Light > Diffuse)"
+    )
 }
 
 /// Why a frame that lacks required buffers lacks them, in its renderer's terms, when its
@@ -209,20 +230,12 @@ pub fn hint(names: &[&str], maps: &ChannelMaps) -> Option<String> {
     let all: Vec<&str> = all.iter().map(String::as_str).collect();
     let resolved = super::layout::resolve(&all);
     let has = |b: super::Buffer| resolved[b as usize].is_some();
-    use super::Buffer::{Albedo, Color, Depth, Diffuse, Normal, Specular};
+    use super::Buffer::{Albedo, Depth, Normal};
     let cycles = passes(names).contains_key("Combined");
     if cycles && !(has(Albedo) && has(Normal) && has(Depth)) {
         return Some(
             "a Blender Cycles frame needs the Denoising Data passes (albedo, normal, depth): enable View Layer \
              Properties > Passes > Data > Denoising Data"
-                .into(),
-        );
-    }
-    if has(Color) && !has(Diffuse) && !has(Specular) && has(Albedo) && has(Normal) {
-        return Some(
-            "this frame has only beauty (R,G,B), albedo and normal: frames without the diffuse/specular split need \
-             the `beauty` variant, which this daemon does not serve yet; write the diffuse and specular layers \
-             (docs/frame-layout.md) or, from Cycles, the Diffuse Direct, Indirect and Color passes"
                 .into(),
         );
     }

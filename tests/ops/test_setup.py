@@ -167,4 +167,4 @@ def test_the_image_takes_only_what_serving_needs():
     last = max(n for n, (i, _) in enumerate(ins) if i == "FROM")
     copied = [r.split()[-2] for i, r in ins[last:] if i == "COPY"]
     assert copied == ["/out/lib/libonnxruntime.so.1.31.1", "/out/bin/mcdenoise", "scripts/healthcheck",
-                      "models/full", "models/nocov", "models/lin2020", "models/MODEL_CARD.md"], copied
+                      "models/full", "models/nocov", "models/lin2020", "models/beauty", "models/MODEL_CARD.md"], copied

@@ -12,7 +12,10 @@ A `nocov` model can be cut from a network trained with the covariance channels z
 without covariance.
 
     python -m mcdenoise_train.export_ms --random --seed 0 --variants full,nocov --out DIR [--ext-width 8 ...]
-    python -m mcdenoise_train.export_ms --checkpoint best.pt --out DIR
+    python -m mcdenoise_train.export_ms --checkpoint best.pt --out DIR [--variants full,nocov | beauty]
+
+A `beauty` model (a network trained with `train_ms --beauty`) is cut like a `nocov` one
+and named `beauty`: the engine feeds it the beauty in the diffuse slot (docs/model-contract.md).
 """
 
 from __future__ import annotations

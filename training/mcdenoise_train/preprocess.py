@@ -114,6 +114,25 @@ def preprocess(raw: torch.Tensor, depth_max: torch.Tensor, cov_max: torch.Tensor
     return out
 
 
+def as_beauty(raw: torch.Tensor, ref: torch.Tensor | None = None, keep_depth: torch.Tensor | None = None):
+    """Raw frames as the engine sees a frame with only a beauty, albedo and normal (the
+    `beauty` variant, docs/model-contract.md): the beauty (diffuse + specular) in the diffuse
+    slot, the specular zero, no variances, no covariance, and the depth kept only where
+    `keep_depth [N]` is true (all frames when None; a beauty frame may or may not carry one).
+    References `[N, 6, H, W]` become (diffuse + specular, 0) alike. Returns new tensors."""
+    raw = raw.clone()
+    raw[:, DIFFUSE] += raw[:, SPECULAR]
+    raw[:, SPECULAR] = 0
+    raw[:, COV] = 0
+    raw[:, VAR["diffuse"]:VAR["covariance"] + 1] = 0
+    if keep_depth is not None:
+        raw[:, DEPTH] *= keep_depth.to(raw.device, raw.dtype).view(-1, 1, 1)
+    if ref is None:
+        return raw
+    ref = torch.cat([ref[:, 0:3] + ref[:, 3:6], torch.zeros_like(ref[:, 3:6])], 1)
+    return raw, ref
+
+
 def targets(ref_diffuse: torch.Tensor, ref_specular: torch.Tensor, albedo: torch.Tensor) -> dict[str, torch.Tensor]:
     """Training targets in the preprocessed domains (the noisy frame's albedo divides the
     reference diffuse, as in `mcdenoise preprocess --reference`), and the reference color."""
@@ -124,4 +143,4 @@ def targets(ref_diffuse: torch.Tensor, ref_specular: torch.Tensor, albedo: torch
     }
 
 
-__all__ = ["FILE_NAMES", "RAW", "RAW_INDEX", "preprocess", "raw_from_channels", "targets"]
+__all__ = ["FILE_NAMES", "RAW", "RAW_INDEX", "as_beauty", "preprocess", "raw_from_channels", "targets"]

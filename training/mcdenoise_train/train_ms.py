@@ -20,6 +20,9 @@ Recipe:
 - **Loss** (`losses.py`): SMAPE of each component in its preprocessed domain (Lin et al.
   2020), plus L1 of the final color after the transfer function log(1 + x) (robust to HDR
   outliers), plus `--perceptual W` × the VGG-16 feature loss when the weights are present.
+- **Beauty** (`--beauty`): every patch as a frame with only a beauty, albedo and normal
+  (`preprocess.as_beauty`: the sum of both components in the diffuse slot, no variances, no
+  covariance, the depth dropped in half the patches); exported as the `beauty` variant.
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine), bf16 autocast on CUDA.
 - **Checkpoints** (`runs` directory, `checkpoint.py`): `best.pt` (network weights and
   config, selected on the validation frames by mean log RelMSE + mean log DSSIM),
@@ -50,7 +53,7 @@ from .exr import read_exr
 from .files import append_jsonl, atomic_path, open_append
 from .model import DenoiserNet, paper_config
 from .msnet import MSNet, add_shape_arguments, from_arguments, pad_to_multiple
-from .preprocess import ALBEDO, DIFFUSE, SPECULAR, VAR, preprocess, raw_from_channels, targets
+from .preprocess import ALBEDO, DIFFUSE, SPECULAR, VAR, as_beauty, preprocess, raw_from_channels, targets
 from .recon import reconstruct as _recon_v1
 from .recon_ms import reconstruct
 
@@ -297,11 +300,12 @@ def denoise_whole(net, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool =
     return rec.total[..., :h, :w]
 
 
-def validate(net: MSNet, val: FrameSet, zero_cov: bool = False) -> dict[str, float]:
+def validate(net: MSNet, val: FrameSet, zero_cov: bool = False, beauty: bool = False) -> dict[str, float]:
     net.eval()
     rel, dssim, inp = [], [], []
     for i in range(len(val)):
-        out = denoise_whole(net, val.raw[i:i + 1], val.maxima[i:i + 1], zero_cov)
+        raw = as_beauty(val.raw[i:i + 1]) if beauty else val.raw[i:i + 1]
+        out = denoise_whole(net, raw, val.maxima[i:i + 1], zero_cov)
         ref = val.ref[i:i + 1, 0:3] + val.ref[i:i + 1, 3:6]
         noisy = val.raw[i:i + 1, DIFFUSE] + val.raw[i:i + 1, SPECULAR]
         rel.append(float(losses.relmse(out, ref)))
@@ -362,6 +366,8 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
     p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
     p.add_argument("--lin-predictor-width", type=int, default=128, help="lin2020: predictor width (paper: 128)")
+    p.add_argument("--beauty", action="store_true",
+                   help="train the `beauty` variant: patches with only a beauty, albedo and normal (see above)")
     add_shape_arguments(p)
     p.add_argument("--export", default=None, help="export best.pt as contract-v2 full and nocov into this models directory")
     return p.parse_args(argv)
@@ -394,7 +400,11 @@ def main(argv=None) -> int:
         a.time_budget = left if a.time_budget is None else min(a.time_budget, left)
         a.time_limit = left if a.time_limit is None else min(a.time_limit, left)
     torch.manual_seed(a.seed)
+    if a.beauty:
+        a.cov_dropout = 0.0  # no covariance at all
     if a.arch == "lin2020":
+        if a.beauty:
+            raise SystemExit("--beauty trains the production network (--arch msnet)")
         net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
         a.cov_dropout = 0.0  # the paper's network always has covariance
     elif a.init:
@@ -461,6 +471,8 @@ def main(argv=None) -> int:
                 print(f"step {step}: {added} training frames added, {len(train)} in all", file=sys.stderr, flush=True)
         raw, ref, maxima = crops(train, a.batch, a.patch, g)
         raw, ref = augment(raw, ref, g, a)
+        if a.beauty:
+            raw, ref = as_beauty(raw, ref, keep_depth=torch.rand(a.batch, generator=g) < 0.5)
         b = batch_inputs(raw, ref, maxima, a.cov_dropout, g, crop=a.patch)
         b = {k: v.contiguous(memory_format=torch.channels_last) for k, v in b.items()}
         rec = forward(net, b, autocast)
@@ -488,8 +500,8 @@ def main(argv=None) -> int:
                 print(f"step {step}/{a.steps} loss {row['loss']:.4f} {row['time']:.0f}s", file=sys.stderr, flush=True)
         stop = a.time_limit is not None and time.time() - t_run > a.time_limit
         if step % a.val_every == 0 or step == a.steps or stop:
-            v = validate(net, val) if len(val) else {"score": float(loss), "relmse": float("nan")}
-            if len(val):
+            v = validate(net, val, beauty=a.beauty) if len(val) else {"score": float(loss), "relmse": float("nan")}
+            if len(val) and not a.beauty:
                 v["nocov"] = validate(net, val, zero_cov=True)
             v.update(step=step, time=time.time() - t0)
             append_jsonl(out / "val.jsonl", v)
@@ -509,7 +521,8 @@ def main(argv=None) -> int:
     elif a.export:
         from . import export_ms
 
-        export_ms.main(["--checkpoint", str(out / "best.pt"), "--out", a.export])
+        variants = ["--variants", "beauty"] if a.beauty else []
+        export_ms.main(["--checkpoint", str(out / "best.pt"), "--out", a.export, *variants])
     return 0
 
 

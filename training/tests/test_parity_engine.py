@@ -24,6 +24,10 @@ so the kernels are far from uniform) are exported for both variants. Then:
    plus recon_ms's reconstruction, cropped, and v1's inverse transforms, to 1e-5 relative
    (float32 output; measured: 5e-7). The torch side filters in float32 (recon_ms casts to
    it), so the tolerance covers two float32 reconstructions and onnxruntime against torch.
+5. `beauty`: the `nocov` network exported as the `beauty` variant; `preprocess --variant
+   beauty` of the frame with the split equals the torch preprocessing of
+   `preprocess.as_beauty` (the training side's view of a beauty-only frame), and `run
+   --variant beauty` agrees with the torch network on those inputs, as in 4.
 
 The torch reference runs the network on the whole frame, so the conv's zero padding
 applies at the frame border only: the engine's tiles must take their context from the
@@ -78,8 +82,8 @@ def engine(exe: str, *args) -> None:
         )
 
 
-def preprocess(exe: str, frame: Path, out: Path) -> dict[str, np.ndarray]:
-    engine(exe, "preprocess", frame, "-o", out)
+def preprocess(exe: str, frame: Path, out: Path, *args) -> dict[str, np.ndarray]:
+    engine(exe, "preprocess", frame, "-o", out, *args)
     with np.load(out) as z:
         return {k: z[k] for k in z.files}
 
@@ -255,12 +259,33 @@ def case_v2(tmp_path_factory):
         for h in [*full.kernel_heads, *full.blend_heads]:
             h.weight.mul_(HEAD_GAIN2)
     nets = {"full": full, "nocov": nocov_from_full(full)}
+    nets["beauty"] = nets["nocov"]
+    paths["beauty"] = paths["full"]  # the engine turns the split frame into a beauty-only one
     for v, net in nets.items():
         export_v2(net, root / "models" / v / "model.onnx", v)
     return dict(root=root, paths=paths, nets=nets, models=root / "models")
 
 
-@pytest.mark.parametrize("variant", ["full", "nocov"])
+def test_beauty_inputs_match_the_training_side(request):
+    from mcdenoise_train import preprocess as pp
+
+    exe = require_engine()
+    case = request.getfixturevalue("case_v2")
+    arrs = preprocess(exe, case["paths"]["beauty"], case["root"] / "pre-beauty.npz", "--variant", "beauty",
+                      "--fireflies", "off")
+    raw, dmax, cmax = pp.raw_from_channels(read_exr(case["paths"]["beauty"]))
+    raw = pp.as_beauty(torch.from_numpy(raw)[None].double())
+    assert float(raw[:, pp.SPECULAR].abs().max()) == 0.0
+    want = pp.preprocess(raw, torch.tensor([dmax], dtype=torch.float64), torch.tensor([0.0], dtype=torch.float64),
+                         "nocov")
+    for key, name in (("diffuse", "diffuse_color"), ("specular", "specular_color"), ("features", "features")):
+        got, ref = arrs[name], want[key][0].numpy()
+        assert got.shape == ref.shape, name
+        err = np.abs(got - ref) / np.maximum(np.abs(ref), 1e-3)
+        assert err.max() <= 1e-5, f"{name}: max relative error {err.max():.3g}"
+
+
+@pytest.mark.parametrize("variant", ["full", "nocov", "beauty"])
 def test_run_matches_torch_v2(request, variant):
     from mcdenoise_train.msnet import pad_to_multiple
     from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
@@ -268,7 +293,7 @@ def test_run_matches_torch_v2(request, variant):
     exe = require_engine()
     case = request.getfixturevalue("case_v2")
     root, net = case["root"], case["nets"][variant]
-    arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz")
+    arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz", "--variant", variant)
     t = lambda k: torch.from_numpy(arrs[k])[None]
     m = net.size_multiple
     assert H2 % m and W2 % m, "the frame should need padding"

@@ -141,6 +141,34 @@ def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
         assert meta["mcdenoise.component"] == c and meta["mcdenoise.kernel_size"] == "21"
 
 
+def test_as_beauty_is_a_frame_without_the_split():
+    from mcdenoise_train.preprocess import COV, DEPTH, as_beauty
+
+    g = torch.Generator().manual_seed(3)
+    raw, ref = torch.rand(2, len(RAW), 8, 8, generator=g), torch.rand(2, 6, 8, 8, generator=g)
+    b, r = as_beauty(raw, ref, keep_depth=torch.tensor([True, False]))
+    assert torch.equal(b[:, DIFFUSE], raw[:, DIFFUSE] + raw[:, SPECULAR])
+    assert float(b[:, SPECULAR].abs().max()) == 0 and float(b[:, COV].abs().max()) == 0
+    assert float(b[:, VAR["diffuse"]:VAR["covariance"] + 1].abs().max()) == 0
+    assert torch.equal(b[0, DEPTH], raw[0, DEPTH]) and float(b[1, DEPTH].abs().max()) == 0
+    assert torch.equal(r[:, :3], ref[:, :3] + ref[:, 3:]) and float(r[:, 3:].abs().max()) == 0
+    assert torch.equal(b[:, 6:12], raw[:, 6:12]), "albedo and normal unchanged"
+    assert not torch.equal(raw[:, SPECULAR], torch.zeros_like(raw[:, SPECULAR])), "the input is not changed"
+
+
+def test_beauty_training_exports_the_beauty_variant(tmp_path):
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    models = tmp_path / "models"
+    assert train_ms.main(["--data", str(root), "--out", str(tmp_path / "run"), "--beauty", "--steps", "2",
+                          "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32", "--batch", "2",
+                          "--threads", "2", "--device", "cpu", "--export", str(models)]) == 0
+    assert sorted(p.name for p in models.iterdir()) == ["beauty"]
+    meta = read_metadata_v2(models / "beauty" / "model.onnx")
+    assert meta["mcdenoise.variant"] == "beauty" and "covariance" not in meta["mcdenoise.features"]
+    val = [json.loads(l) for l in open(tmp_path / "run" / "val.jsonl")]
+    assert val and all(np.isfinite(v["relmse"]) and "nocov" not in v for v in val)
+
+
 def test_crops_are_the_frames_windows():
     class Frames:
         raw = torch.randn(3, 20, 40, 36)
