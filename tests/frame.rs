@@ -279,6 +279,7 @@ fn a_beauty_albedo_normal_frame_is_read_with_the_beauty_as_its_diffuse() {
     let planes: Vec<_> = planes.into_iter().filter(|(n, _)| !n.starts_with("normal")).collect();
     let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
     assert!(err.to_string().contains("normal.R"), "{err}");
+    assert!(err.to_string().contains("needs an albedo and a normal (then the `beauty` variant takes it"), "{err}");
 }
 
 #[test]

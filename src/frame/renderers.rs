@@ -230,7 +230,7 @@ pub fn hint(names: &[&str], maps: &ChannelMaps) -> Option<String> {
     let all: Vec<&str> = all.iter().map(String::as_str).collect();
     let resolved = super::layout::resolve(&all);
     let has = |b: super::Buffer| resolved[b as usize].is_some();
-    use super::Buffer::{Albedo, Depth, Normal};
+    use super::Buffer::{Albedo, Depth, Diffuse, Normal, Specular};
     let cycles = passes(names).contains_key("Combined");
     if cycles && !(has(Albedo) && has(Normal) && has(Depth)) {
         return Some(
@@ -239,7 +239,14 @@ pub fn hint(names: &[&str], maps: &ChannelMaps) -> Option<String> {
                 .into(),
         );
     }
-    maps.hint(names)
+    let no_split = beauty(names).color.len() == 3 && !has(Diffuse) && !has(Specular);
+    maps.hint(names).or_else(|| {
+        no_split.then(|| {
+            "a frame with a beauty but no diffuse/specular split needs an albedo and a normal (then the `beauty` \
+             variant takes it; depth is optional), or the diffuse and specular layers (docs/frame-layout.md)"
+                .into()
+        })
+    })
 }
 
 /// `names` plus the canonical names [`recipes`] can derive.
