@@ -229,7 +229,8 @@ impl Frame {
     /// The frame as the `beauty` variant takes it: the beauty (diffuse + specular) in the
     /// diffuse slot, the specular zero, every variance zero, no covariance; albedo, normal
     /// and depth as they are. A frame that is already [`Frame::beauty_only`] keeps its
-    /// buffers (only variances a caller added are zeroed).
+    /// color buffers, and variance buffers that are zero already (those
+    /// [`Frame::fill_missing_variances`] added) are kept as they are, not allocated again.
     pub fn to_beauty(&self) -> Frame {
         let mut out = self.clone();
         let n = self.pixels();
@@ -241,7 +242,7 @@ impl Frame {
         out.remove(Buffer::Covariance);
         out.remove(Buffer::CovarianceVariance);
         for var in Buffer::ALL.into_iter().filter_map(Buffer::variance) {
-            if out.has(var) {
+            if out.has(var) && out.planes(var).iter().flatten().any(|v| *v != 0.0) {
                 out.buffers[var as usize] = Some(Arc::new(vec![vec![0f32; n]]));
             }
         }

@@ -369,7 +369,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--beauty", action="store_true",
                    help="train the `beauty` variant: patches with only a beauty, albedo and normal (see above)")
     add_shape_arguments(p)
-    p.add_argument("--export", default=None, help="export best.pt as contract-v2 full and nocov into this models directory")
+    p.add_argument("--export", default=None, help="export best.pt as contract-v2 full and nocov (with --beauty: beauty) into this models directory")
     return p.parse_args(argv)
 
 
