@@ -271,7 +271,9 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
         }
         Some(Variant::Full) => FeatureSet::Full,
         Some(Variant::Nocov) | Some(Variant::Beauty) => FeatureSet::Nocov,
-        Some(v) => bail!("--variant {v}: `preprocess` writes the `full`, `nocov` or `beauty` inputs (auto, full, nocov or beauty)"),
+        Some(v) => bail!(
+            "--variant {v}: `preprocess` writes the `full`, `nocov` or `beauty` inputs (auto, full, nocov or beauty)"
+        ),
         None if frame.has(Buffer::Covariance) => FeatureSet::Full,
         None => FeatureSet::Nocov,
     };
