@@ -8,7 +8,7 @@ mod model_dirs;
 use std::path::Path;
 
 use common::*;
-use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig, FeatureSet, Variant};
+use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig, FeatureSet, InputCompression, Variant};
 use model_dirs::*;
 
 fn engine_at(dir: &Path, tile: usize) -> Engine {
@@ -73,6 +73,45 @@ fn models_report_their_contract_fields() {
     assert_eq!(models[0].features, FeatureSet::Full);
     assert_eq!(models[1].features, FeatureSet::Nocov);
     assert_eq!(e.flops_per_pixel(Variant::Full), Some(9162.0));
+}
+
+#[test]
+fn inputs_compressed_by_the_engine_give_the_graphs_output() {
+    // tiny-v2-engine/full is tiny-v2/full exported without the symlog in its graph: the
+    // engine compresses the inputs instead, and the kernels still filter the plain color.
+    let engine_form = tiny_v2().with_file_name("tiny-v2-engine");
+    let frame = synthetic_frame(90, 70, true);
+    for tile in [0, 32] {
+        let mut graph = engine_at(&tiny_v2(), tile);
+        let mut engine = engine_at(&engine_form, tile);
+        assert_eq!(graph.models()[0].input_compression, InputCompression::Graph);
+        assert_eq!(engine.models()[0].input_compression, InputCompression::Engine);
+        let a = graph.denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
+        let b = engine.denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
+        for c in 0..3 {
+            for (name, x, y) in
+                [("diffuse", &a.diffuse[c], &b.diffuse[c]), ("specular", &a.specular[c], &b.specular[c])]
+            {
+                let d = max_rel_diff(x, y);
+                assert!(d <= 1e-5, "tile {tile}, {name} {c}: relative difference {d}");
+            }
+        }
+    }
+    // The key decides what the engine feeds: a graph that compresses its inputs itself,
+    // marked `engine`, gets them compressed twice and filters differently.
+    let tmp = tempfile::tempdir().unwrap();
+    let twice = set_meta(&read(&tiny_v2(), "full", "model.onnx"), "mcdenoise.input_compression", "engine");
+    write(tmp.path(), "full", "model.onnx", &twice);
+    let a = engine_at(&tiny_v2(), 0).denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
+    let b = engine_at(tmp.path(), 0).denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
+    assert!(max_rel_diff(&a.diffuse[0], &b.diffuse[0]) > 1e-3);
+    // Without the key, the graph compresses (models exported before it existed).
+    let tmp = tempfile::tempdir().unwrap();
+    let absent =
+        rename(&read(&tiny_v2(), "full", "model.onnx"), "mcdenoise.input_compression", "mcdenoise_input_compression");
+    write(tmp.path(), "full", "model.onnx", &absent);
+    let e = engine_at(tmp.path(), 0);
+    assert_eq!(e.models()[0].input_compression, InputCompression::Graph);
 }
 
 fn load_error(dir: &Path) -> String {
@@ -194,6 +233,10 @@ fn bad_contract_v2_models_are_refused_with_the_file_and_field_named() {
         (Box::new(|b| rename(&b, "mcdenoise.architecture", "mcdenoise_architecture")), "`mcdenoise.architecture` is missing"),
         (Box::new(|b| set_meta(&b, "mcdenoise.features", "normal.R")), "`mcdenoise.features` is `normal.R`"),
         (Box::new(|b| rename(&b, "specular", "specul_r")), "graph has no `specular`"),
+        (
+            Box::new(|b| set_meta(&b, "mcdenoise.input_compression", "gpu")),
+            "metadata `mcdenoise.input_compression` is `gpu`, expected `graph` or `engine`",
+        ),
     ];
     for (edit, want) in cases {
         let msg = v2_error(edit);

@@ -91,6 +91,31 @@ pub mod keys {
     pub const LEVELS: &str = "mcdenoise.levels";
     /// Contract v2: what region sides must be a multiple of (2^(levels − 1)).
     pub const SIZE_MULTIPLE: &str = "mcdenoise.size_multiple";
+    /// Contract v2, optional: who compresses the inputs with symlog, `graph` (absent) or
+    /// `engine` ([`super::InputCompression`]).
+    pub const INPUT_COMPRESSION: &str = "mcdenoise.input_compression";
+}
+
+/// Who applies symlog(x) = sign(x)·ln(1 + |x|) to a contract-v2 graph's inputs
+/// (docs/model-contract.md, "Input compression").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum InputCompression {
+    /// The graph itself (contract v1, and v2 models without the key).
+    Graph,
+    /// The engine, before inference: the graph takes compressed inputs.
+    Engine,
+}
+
+impl InputCompression {
+    /// The value of [`keys::INPUT_COMPRESSION`] (absent = `Graph`).
+    pub fn parse(value: Option<&str>) -> Option<InputCompression> {
+        match value {
+            None | Some("graph") => Some(InputCompression::Graph),
+            Some("engine") => Some(InputCompression::Engine),
+            Some(_) => None,
+        }
+    }
 }
 
 /// A model variant: the name of its directory under the models directory (`full`, `nocov`,

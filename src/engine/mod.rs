@@ -11,6 +11,7 @@
 //! kernels at several scales: [`multiscale`]); for the latter, tiles and halos are aligned to
 //! its pooling grid and regions padded to it, so that tiles see the frame's grid.
 
+mod compress;
 pub mod contract;
 pub mod device;
 pub mod fireflies;
@@ -25,7 +26,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-pub use contract::{Component, FeatureSet, Variant};
+pub use contract::{Component, FeatureSet, InputCompression, Variant};
 pub use device::Device;
 pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
@@ -487,21 +488,37 @@ fn run_region(
         model::Networks::MultiScale(net) => {
             let t = Instant::now();
             let (pw, ph) = (region.w.next_multiple_of(multiple), region.h.next_multiple_of(multiple));
-            let diffuse = pad_planes(&inputs.diffuse, region.w, region.h, pw, ph);
-            let specular = pad_planes(&inputs.specular, region.w, region.h, pw, ph);
-            let features = pad_planes(&inputs.features, region.w, region.h, pw, ph);
+            let mut diffuse = pad_planes(inputs.diffuse, region.w, region.h, pw, ph);
+            let mut specular = pad_planes(inputs.specular, region.w, region.h, pw, ph);
+            let mut features = pad_planes(inputs.features, region.w, region.h, pw, ph);
+            // The kernels filter the uncompressed color (channels 0–2 of each tensor): keep
+            // it aside when the engine compresses the inputs.
+            let color_len = 3 * pw * ph;
+            let mut colors = None;
+            if net.info.input_compression == InputCompression::Engine {
+                colors = Some([diffuse[..color_len].to_vec(), specular[..color_len].to_vec()]);
+                pool.install(|| {
+                    for tensor in [&mut diffuse, &mut specular, &mut features] {
+                        compress::symlog_in_place(tensor);
+                    }
+                });
+            }
             timings.preprocess += t.elapsed();
             let t = Instant::now();
             let mut recon_time = Duration::ZERO;
             let local = Rect { x: core.x - region.x, y: core.y - region.y, w: core.w, h: core.h };
             net.run(&diffuse, &specular, &features, ph, pw, |pyramids| {
                 if reconstruct {
+                    let (cd, cs) = match &colors {
+                        Some([d, s]) => (d.as_slice(), s.as_slice()),
+                        None => (&diffuse[..color_len], &specular[..color_len]),
+                    };
                     let t = Instant::now();
                     pool.install(|| {
                         let [od, os] = &mut out;
                         rayon::join(
-                            || multiscale::reconstruct(&pyramids[0], &diffuse[..3 * pw * ph], pw, ph, local, od),
-                            || multiscale::reconstruct(&pyramids[1], &specular[..3 * pw * ph], pw, ph, local, os),
+                            || multiscale::reconstruct(&pyramids[0], cd, pw, ph, local, od),
+                            || multiscale::reconstruct(&pyramids[1], cs, pw, ph, local, os),
                         )
                     });
                     recon_time = t.elapsed();
@@ -515,10 +532,10 @@ fn run_region(
 }
 
 /// Planar `[c][h][w]` planes padded to `[c][ph][pw]` by replicating the last column and row
-/// (borrowed as they are when no padding is needed).
-fn pad_planes(src: &[f32], w: usize, h: usize, pw: usize, ph: usize) -> std::borrow::Cow<'_, [f32]> {
+/// (returned as they are when no padding is needed).
+fn pad_planes(src: Vec<f32>, w: usize, h: usize, pw: usize, ph: usize) -> Vec<f32> {
     if (pw, ph) == (w, h) {
-        return std::borrow::Cow::Borrowed(src);
+        return src;
     }
     let channels = src.len() / (w * h);
     let mut dst = vec![0f32; channels * pw * ph];
@@ -530,7 +547,7 @@ fn pad_planes(src: &[f32], w: usize, h: usize, pw: usize, ph: usize) -> std::bor
             out[w..].fill(row[w - 1]);
         }
     }
-    std::borrow::Cow::Owned(dst)
+    dst
 }
 
 /// Cores of side `tile` covering a `w`×`h` frame, row-major; one core for `tile == 0`.

@@ -9,7 +9,7 @@ use ort::value::{TensorRef, ValueType};
 use serde::Serialize;
 use sha2::Digest;
 
-use super::contract::{self, keys, Component, FeatureSet, Variant, COLOR_CHANNELS, TAPS};
+use super::contract::{self, keys, Component, FeatureSet, InputCompression, Variant, COLOR_CHANNELS, TAPS};
 use super::device::Device;
 use super::multiscale::Pyramid;
 use super::EngineError;
@@ -39,6 +39,8 @@ pub struct ModelInfo {
     pub kernel_size: usize,
     /// Pyramid levels (1 for contract v1).
     pub levels: usize,
+    /// Who compresses the inputs with symlog (`graph` for contract v1).
+    pub input_compression: InputCompression,
 }
 
 fn component_or_both<S: serde::Serializer>(c: &Option<Component>, s: S) -> Result<S::Ok, S::Error> {
@@ -242,6 +244,7 @@ impl Network {
             kernel_size: contract::KERNEL_SIZE,
             levels: 1,
             sha256: model.sha256.clone(),
+            input_compression: InputCompression::Graph,
         };
         Ok(Network { session: model.session, info })
     }
@@ -315,6 +318,17 @@ impl MultiScaleNetwork {
             &format!(" (2^(levels − 1), levels = {levels})"),
         )?;
         let architecture = model.get(keys::ARCHITECTURE)?.to_string();
+        let compression = model.meta.get(keys::INPUT_COMPRESSION).map(String::as_str);
+        let input_compression = InputCompression::parse(compression).ok_or_else(|| {
+            model_error(
+                path,
+                format!(
+                    "metadata `{}` is `{}`, expected `graph` or `engine`",
+                    keys::INPUT_COMPRESSION,
+                    compression.unwrap_or_default()
+                ),
+            )
+        })?;
 
         let inputs = model.session.inputs();
         let expected_inputs = [
@@ -351,6 +365,7 @@ impl MultiScaleNetwork {
             kernel_size,
             levels,
             sha256: model.sha256.clone(),
+            input_compression,
         };
         Ok(MultiScaleNetwork { session: model.session, info, size_multiple })
     }

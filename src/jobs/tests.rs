@@ -79,6 +79,7 @@ impl Denoiser for FakeDenoiser {
             flops_per_pixel: 1.0,
             architecture: "fake".into(),
             sha256: String::new(),
+            input_compression: crate::engine::InputCompression::Graph,
         }]
     }
 

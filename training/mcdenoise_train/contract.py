@@ -44,6 +44,8 @@ META_KEYS = (
     "mcdenoise.flops_per_pixel",
     "mcdenoise.architecture",
 )
+# Contract v2 only, optional: `graph` (absent) or `engine`, who applies symlog to the inputs.
+META_INPUT_COMPRESSION = "mcdenoise.input_compression"
 
 _BASE = (
     "normal.R", "normal.G", "normal.B",

@@ -16,7 +16,10 @@ far more context for the same cost (Vogels et al. 2018; RenderKit/oidn's U-Nets)
 
 `recon_ms.py` turns these into the filtered color (docs/model-contract.md, "Model contract
 v2"): a k x k kernel at each pyramid level of the preprocessed color, blended coarse to
-fine. Inputs are compressed with `symlog` first, as in contract v1.
+fine. Inputs are compressed with `symlog` first, as in contract v1; an exported graph
+leaves that to the engine (`compress_inputs = False`, metadata `mcdenoise.input_compression`
+`engine`), whose preprocessing writes the tensors anyway and does it in the same pass for
+a quarter of the graph's time (docs/model-contract.md).
 
 `forward` returns `(kernel_0, …, kernel_{L-1}, blend_0, …, blend_{L-2})`, the graph's
 outputs in order. H and W must be multiples of `size_multiple` (2^(L-1)).
@@ -80,6 +83,9 @@ class MSNet(nn.Module):
         if kernel_size < 1 or kernel_size % 2 == 0:
             raise ValueError(f"kernel_size must be odd and positive, got {kernel_size}")
         self.in_features, self.levels, self.kernel_size = in_features, levels, kernel_size
+        # Whether forward applies symlog to its inputs (training, validation); an export for
+        # the engine turns it off and feeds symlog'd inputs instead. Not part of the weights.
+        self.compress_inputs = True
         self.config = dict(
             arch="msnet", in_features=in_features, ext_width=ext_width, ext_blocks=ext_blocks,
             enc=enc, dec=dec, kernel_size=kernel_size, levels=levels,
@@ -118,8 +124,10 @@ class MSNet(nn.Module):
                 h.weight.mul_(0.1)
 
     def forward(self, diffuse: torch.Tensor, specular: torch.Tensor, features: torch.Tensor):
-        color = symlog(torch.cat([diffuse, specular], 1))
-        x = torch.relu(torch.cat([self.color_extractor(color), self.feature_extractor(symlog(features))], 1))
+        color = torch.cat([diffuse, specular], 1)
+        if self.compress_inputs:
+            color, features = symlog(color), symlog(features)
+        x = torch.relu(torch.cat([self.color_extractor(color), self.feature_extractor(features)], 1))
         skips = [x]
         for l in range(self.levels - 1):
             x = self.encoder[l](F.max_pool2d(x, 2))

@@ -27,8 +27,10 @@ import numpy as np
 import onnx
 import torch
 
+from .contract import META_INPUT_COMPRESSION
 from .data import manifest_frames
 from .exr import read_exr
+from .model import symlog
 from .preprocess import preprocess, raw_from_channels
 
 
@@ -85,6 +87,9 @@ def quantize(model_path: str | os.PathLike, data: str | os.PathLike, out: str | 
         if not n.name:
             n.name = f"{n.op_type}_{i}"
     batches = calibration_inputs(data, variant, frames, crop)
+    if meta.get(META_INPUT_COMPRESSION, "graph") == "engine":
+        # The graph takes its inputs compressed (the engine applies symlog before it).
+        batches = [{k: symlog(torch.from_numpy(v)).numpy() for k, v in b.items()} for b in batches]
 
     class Reader(CalibrationDataReader):
         def __init__(self):

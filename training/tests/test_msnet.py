@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import onnx
 import pytest
 import torch
 import torch.nn.functional as F
@@ -98,12 +99,18 @@ def test_nocov_cut_equals_the_full_network_on_zero_covariance():
         assert torch.allclose(x, y, atol=1e-5)
 
 
-def test_export_round_trip(tmp_path):
+@pytest.mark.parametrize("compression", ["engine", "graph"])
+def test_export_round_trip(tmp_path, compression):
     torch.manual_seed(0)
     net = MSNet(28, **SMALL).eval()
     path = tmp_path / "full" / "model.onnx"
-    export_onnx(net, path, "full")
+    export_onnx(net, path, "full", compression=compression)
     meta = read_metadata_v2(path)
+    assert meta["mcdenoise.input_compression"] == compression
+    # Only a graph that compresses its own inputs holds the symlog's operators.
+    ops = {n.op_type for n in onnx.load(str(path)).graph.node}
+    assert ("Log" in ops) == (compression == "graph") and ("Sign" in ops) == (compression == "graph")
+    assert net.compress_inputs, "the export must not change the network it was given"
     assert meta["mcdenoise.contract"] == "2" and meta["mcdenoise.levels"] == "5"
     assert meta["mcdenoise.size_multiple"] == "16" and meta["mcdenoise.kernel_size"] == "5"
     assert meta["mcdenoise.features"] == ",".join(FEATURES_FULL)

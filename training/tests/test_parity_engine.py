@@ -263,6 +263,8 @@ def case_v2(tmp_path_factory):
     paths["beauty"] = paths["full"]  # the engine turns the split frame into a beauty-only one
     for v, net in nets.items():
         export_v2(net, root / "models" / v / "model.onnx", v)
+    # The same full network with the symlog in its graph (`input_compression` `graph`).
+    export_v2(full, root / "models-graph" / "full" / "model.onnx", "full", compression="graph")
     return dict(root=root, paths=paths, nets=nets, models=root / "models")
 
 
@@ -285,8 +287,9 @@ def test_beauty_inputs_match_the_training_side(request):
         assert err.max() <= 1e-5, f"{name}: max relative error {err.max():.3g}"
 
 
-@pytest.mark.parametrize("variant", ["full", "nocov", "beauty"])
-def test_run_matches_torch_v2(request, variant):
+@pytest.mark.parametrize("variant,compression", [("full", "engine"), ("nocov", "engine"), ("beauty", "engine"),
+                                                 ("full", "graph")])
+def test_run_matches_torch_v2(request, variant, compression):
     from mcdenoise_train.msnet import pad_to_multiple
     from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
 
@@ -311,7 +314,8 @@ def test_run_matches_torch_v2(request, variant):
     # The kernels are far from uniform: the result differs from the noisy input.
     assert np.abs(expect[""] - arrs["noisy"]).max() > 0.05 * np.abs(arrs["noisy"]).max()
 
-    out = root / f"out-{variant}.exr"
-    engine(exe, "run", case["paths"][variant], "-o", out, "--models", case["models"],
+    out = root / f"out-{variant}-{compression}.exr"
+    models = case["models"] if compression == "engine" else root / "models-graph"
+    engine(exe, "run", case["paths"][variant], "-o", out, "--models", models,
            "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", variant)
     _compare_output(out, expect, (H2, W2), float_tol=1e-5)
