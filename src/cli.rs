@@ -112,12 +112,22 @@ pub struct RunArgs {
     /// provider, from the GPU build of ONNX Runtime), or `auto` (CUDA where available).
     #[arg(long, env = "MCDENOISE_DEVICE", default_value = "cpu", value_parser = parse_device)]
     pub device: engine::Device,
+    /// Where contract-v2 kernels are applied: `engine` (the engine's own code, on the CPU),
+    /// `graph` (inside the network's graph, `model-recon.onnx`, on the device the networks
+    /// run on), or `auto` (`graph` on a GPU where the variant has that file, else `engine`).
+    #[arg(long, env = "MCDENOISE_RECONSTRUCTION", default_value = "auto", value_parser = parse_reconstruction)]
+    pub reconstruction: engine::Reconstruction,
     #[command(flatten)]
     pub frame: FrameArgs,
 }
 
 /// clap's parser for `--device` ([`engine::Device`]).
 pub fn parse_device(s: &str) -> std::result::Result<engine::Device, String> {
+    s.parse()
+}
+
+/// clap's parser for `--reconstruction` ([`engine::Reconstruction`]).
+pub fn parse_reconstruction(s: &str) -> std::result::Result<engine::Reconstruction, String> {
     s.parse()
 }
 
@@ -173,6 +183,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     }
     config.ort_library = args.ort_library.clone();
     config.device = args.device;
+    config.reconstruction = args.reconstruction;
 
     let t = Instant::now();
     let mut engine = Engine::load(&config)?;
@@ -201,7 +212,9 @@ pub fn run(args: RunArgs) -> Result<()> {
     timings.encode += ms(t);
     timings.total = ms(total);
     let flops = engine.flops_per_pixel(out.variant).unwrap_or(0.0);
-    let contract = engine.models().iter().find(|m| m.variant == out.variant).map_or(0, |m| m.contract);
+    let used = engine.models().into_iter().find(|m| m.variant == out.variant);
+    let contract = used.map_or(0, |m| m.contract);
+    let reconstruction = if used.is_some_and(|m| m.outputs == engine::Outputs::Filtered) { "graph" } else { "engine" };
     eprintln!("denoised {} with variant `{}` (contract {contract})", args.input.display(), out.variant);
     let inference_s = (timings.inference / 1e3).max(1e-9);
     let report = json!({
@@ -213,6 +226,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "contract": contract,
         "tiles": out.tiles,
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
+        "reconstruction": reconstruction,
         "threads": config.threads,
         "device": engine.device().to_string(),
         "flops_per_pixel": flops,

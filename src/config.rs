@@ -144,6 +144,11 @@ pub struct ServeArgs {
     /// `--workers` is the number of jobs on it at once.
     #[arg(long, env = "MCDENOISE_DEVICE", default_value = "cpu", value_parser = crate::cli::parse_device, help_heading = "Models and workers")]
     pub device: crate::engine::Device,
+    /// Where contract-v2 kernels are applied: `engine` (the engine's own code, on the CPU),
+    /// `graph` (inside the network's graph, `model-recon.onnx`, on the device the networks
+    /// run on), or `auto` (`graph` on a GPU where the variant has that file, else `engine`).
+    #[arg(long, env = "MCDENOISE_RECONSTRUCTION", default_value = "auto", value_parser = crate::cli::parse_reconstruction, help_heading = "Models and workers")]
+    pub reconstruction: crate::engine::Reconstruction,
     /// Workers, each with its own ONNX Runtime sessions, denoising one job at a time
     /// (default: cores / threads-per-worker, at least 1).
     #[arg(long, env = "MCDENOISE_WORKERS", help_heading = "Models and workers")]
@@ -402,6 +407,7 @@ impl ServeArgs {
             "store": self.shared_store().map(|c| format!("jetstream {}", crate::jobs::shared::redact(&c.servers))).unwrap_or_else(|| "embedded".into()),
             "models": self.models,
             "device": self.device.to_string(),
+            "reconstruction": self.reconstruction.to_string(),
             "workers": self.workers(),
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,

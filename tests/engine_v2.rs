@@ -8,7 +8,9 @@ mod model_dirs;
 use std::path::Path;
 
 use common::*;
-use mcdenoise::engine::{synthetic_frame, Engine, EngineConfig, FeatureSet, InputCompression, Variant};
+use mcdenoise::engine::{
+    synthetic_frame, Engine, EngineConfig, FeatureSet, InputCompression, Outputs, Reconstruction, Variant,
+};
 use model_dirs::*;
 
 fn engine_at(dir: &Path, tile: usize) -> Engine {
@@ -112,6 +114,93 @@ fn inputs_compressed_by_the_engine_give_the_graphs_output() {
     write(tmp.path(), "full", "model.onnx", &absent);
     let e = engine_at(tmp.path(), 0);
     assert_eq!(e.models()[0].input_compression, InputCompression::Graph);
+}
+
+fn engine_reconstructing(dir: &Path, tile: usize, reconstruction: Reconstruction) -> Engine {
+    let mut config = EngineConfig::new(dir);
+    (config.tile, config.tile_v2, config.threads, config.reconstruction) = (tile, tile, 2, reconstruction);
+    Engine::load(&config).expect("models load")
+}
+
+#[test]
+fn the_reconstruction_in_the_graph_gives_the_engines_output() {
+    // tiny-v2's model-recon.onnx: the same networks with recon_ms's reconstruction in the
+    // graph, which a GPU runs there; here ONNX Runtime's CPU provider runs it.
+    for cov in [true, false] {
+        let frame = synthetic_frame(90, 70, cov);
+        for tile in [0, 32] {
+            let mut rust = engine_reconstructing(&tiny_v2(), tile, Reconstruction::Engine);
+            let mut graph = engine_reconstructing(&tiny_v2(), tile, Reconstruction::Graph);
+            assert!(rust.models().iter().all(|m| m.outputs == Outputs::Kernels && m.path.ends_with("model.onnx")));
+            assert!(graph
+                .models()
+                .iter()
+                .all(|m| m.outputs == Outputs::Filtered && m.path.ends_with("model-recon.onnx")));
+            let a = rust.denoise(&frame, None, &mut |_| true).unwrap();
+            let b = graph.denoise(&frame, None, &mut |_| true).unwrap();
+            assert_eq!((a.variant, a.tiles), (b.variant, b.tiles));
+            for c in 0..3 {
+                for (name, x, y) in [
+                    ("color", &a.color[c], &b.color[c]),
+                    ("diffuse", &a.diffuse[c], &b.diffuse[c]),
+                    ("specular", &a.specular[c], &b.specular[c]),
+                ] {
+                    let d = max_rel_diff(x, y);
+                    assert!(d <= 1e-5, "cov {cov}, tile {tile}, {name} {c}: relative difference {d}");
+                }
+            }
+        }
+    }
+    // On the CPU, `auto` keeps the engine's reconstruction (its own code is the faster there).
+    let auto = engine_reconstructing(&tiny_v2(), 0, Reconstruction::Auto);
+    assert!(auto.models().iter().all(|m| m.outputs == Outputs::Kernels));
+}
+
+#[test]
+fn graph_reconstruction_needs_its_file_and_the_right_outputs() {
+    let load = |files: &[(&str, Vec<u8>)]| -> String {
+        let tmp = tempfile::tempdir().unwrap();
+        for (file, bytes) in files {
+            write(tmp.path(), "full", file, bytes);
+        }
+        let mut config = EngineConfig::new(tmp.path());
+        (config.threads, config.reconstruction) = (1, Reconstruction::Graph);
+        match Engine::load(&config) {
+            Ok(_) => panic!("loaded"),
+            Err(e) => e.to_string(),
+        }
+    };
+    let kernels = read(&tiny_v2(), "full", "model.onnx");
+    let recon = read(&tiny_v2(), "full", "model-recon.onnx");
+    let cases = [
+        (vec![("model.onnx", kernels.clone())], "--reconstruction graph needs model-recon.onnx beside model.onnx"),
+        (
+            vec![("model.onnx", kernels.clone()), ("model-recon.onnx", kernels.clone())],
+            "model-recon.onnx: metadata `mcdenoise.outputs` is `kernels`, expected `filtered` in this file",
+        ),
+        (
+            vec![("model.onnx", kernels.clone()), ("model-recon.onnx", set_meta(&recon, "mcdenoise.outputs", "both"))],
+            "metadata `mcdenoise.outputs` is `both`, expected `kernels` or `filtered`",
+        ),
+        (
+            vec![
+                ("model.onnx", kernels.clone()),
+                ("model-recon.onnx", set_meta(&recon, "mcdenoise.input_compression", "engine")),
+            ],
+            "`mcdenoise.outputs` is `filtered` but `mcdenoise.input_compression` is `engine`",
+        ),
+        (
+            vec![
+                ("model.onnx", kernels.clone()),
+                ("model-recon.onnx", rename(&recon, "diffuse_filtered", "diffuse_filterex")),
+            ],
+            "graph has no `diffuse_filtered`",
+        ),
+    ];
+    for (files, want) in cases {
+        let msg = load(&files);
+        assert!(msg.contains(want), "expected {want:?} in: {msg}");
+    }
 }
 
 fn load_error(dir: &Path) -> String {

@@ -94,6 +94,75 @@ pub mod keys {
     /// Contract v2, optional: who compresses the inputs with symlog, `graph` (absent) or
     /// `engine` ([`super::InputCompression`]).
     pub const INPUT_COMPRESSION: &str = "mcdenoise.input_compression";
+    /// Contract v2, optional: what the graph outputs, `kernels` (absent) or `filtered`
+    /// ([`super::Outputs`]).
+    pub const OUTPUTS: &str = "mcdenoise.outputs";
+}
+
+/// What a contract-v2 graph outputs (docs/model-contract.md, "Reconstruction in the graph").
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Outputs {
+    /// Kernel and blend logits per level; the engine reconstructs (`model.onnx`).
+    Kernels,
+    /// The filtered preprocessed color of each component: the reconstruction is in the
+    /// graph (`model-recon.onnx`, for GPUs).
+    Filtered,
+}
+
+impl Outputs {
+    /// The metadata value.
+    pub fn name(self) -> &'static str {
+        match self {
+            Outputs::Kernels => "kernels",
+            Outputs::Filtered => "filtered",
+        }
+    }
+
+    /// The value of [`keys::OUTPUTS`] (absent = `Kernels`).
+    pub fn parse(value: Option<&str>) -> Option<Outputs> {
+        match value {
+            None | Some("kernels") => Some(Outputs::Kernels),
+            Some("filtered") => Some(Outputs::Filtered),
+            Some(_) => None,
+        }
+    }
+}
+
+/// Where contract-v2 kernels are applied (`--reconstruction`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Reconstruction {
+    /// In the graph (`model-recon.onnx`) on a GPU where the variant has one, else in the
+    /// engine.
+    #[default]
+    Auto,
+    /// In the engine's own code (`model.onnx`), wherever the networks run.
+    Engine,
+    /// In the graph: every contract-v2 variant must have `model-recon.onnx`.
+    Graph,
+}
+
+impl std::str::FromStr for Reconstruction {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(Reconstruction::Auto),
+            "engine" => Ok(Reconstruction::Engine),
+            "graph" => Ok(Reconstruction::Graph),
+            other => Err(format!("unknown reconstruction `{other}` (expected `auto`, `engine` or `graph`)")),
+        }
+    }
+}
+
+impl fmt::Display for Reconstruction {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Reconstruction::Auto => "auto",
+            Reconstruction::Engine => "engine",
+            Reconstruction::Graph => "graph",
+        })
+    }
 }
 
 /// Who applies symlog(x) = sign(x)·ln(1 + |x|) to a contract-v2 graph's inputs

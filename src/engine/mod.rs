@@ -26,7 +26,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-pub use contract::{Component, FeatureSet, InputCompression, Variant};
+pub use contract::{Component, FeatureSet, InputCompression, Outputs, Reconstruction, Variant};
 pub use device::Device;
 pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
@@ -68,6 +68,9 @@ pub struct EngineConfig {
     pub ort_library: Option<PathBuf>,
     /// Where the networks run ([`Device`]; `cpu` unless asked).
     pub device: Device,
+    /// Where contract-v2 kernels are applied ([`Reconstruction`]; `auto`: in the graph on a
+    /// GPU where the variant has `model-recon.onnx`).
+    pub reconstruction: Reconstruction,
 }
 
 impl EngineConfig {
@@ -79,6 +82,7 @@ impl EngineConfig {
             threads: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             ort_library: None,
             device: Device::Cpu,
+            reconstruction: Reconstruction::Auto,
         }
     }
 }
@@ -158,7 +162,8 @@ impl Engine {
         let threads = config.threads.max(1);
         let library = runtime::library().map_or_else(|| "loaded".to_string(), |p| p.display().to_string());
         let device = config.device.resolve(&library).map_err(EngineError::Runtime)?;
-        let models = model::load_models(env, &config.models_dir, model::Placement { threads, device })?;
+        let placement = model::Placement { threads, device, reconstruction: config.reconstruction };
+        let models = model::load_models(env, &config.models_dir, placement)?;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("mcdenoise-engine-{i}"))
@@ -507,6 +512,18 @@ fn run_region(
             let t = Instant::now();
             let mut recon_time = Duration::ZERO;
             let local = Rect { x: core.x - region.x, y: core.y - region.y, w: core.w, h: core.h };
+            if net.info.outputs == Outputs::Filtered {
+                // The graph reconstructs: only the core's pixels are taken.
+                net.run_filtered(&diffuse, &specular, &features, ph, pw, |filtered| {
+                    if reconstruct {
+                        for (out, plane) in out.iter_mut().zip(filtered) {
+                            crop(plane, pw, ph, local, out);
+                        }
+                    }
+                })?;
+                timings.inference += t.elapsed();
+                return Ok(out);
+            }
             net.run(&diffuse, &specular, &features, ph, pw, |pyramids| {
                 if reconstruct {
                     let (cd, cs) = match &colors {
@@ -529,6 +546,17 @@ fn run_region(
         }
     }
     Ok(out)
+}
+
+/// Copies `rect` of the `[c][h][w]` planes `src` into `[c][rect.h][rect.w]` `dst`.
+fn crop(src: &[f32], w: usize, h: usize, rect: Rect, dst: &mut [f32]) {
+    let channels = src.len() / (w * h);
+    for c in 0..channels {
+        for y in 0..rect.h {
+            let row = &src[c * w * h + (rect.y + y) * w + rect.x..][..rect.w];
+            dst[(c * rect.h + y) * rect.w..][..rect.w].copy_from_slice(row);
+        }
+    }
 }
 
 /// Planar `[c][h][w]` planes padded to `[c][ph][pw]` by replicating the last column and row

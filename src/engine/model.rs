@@ -9,7 +9,9 @@ use ort::value::{TensorRef, ValueType};
 use serde::Serialize;
 use sha2::Digest;
 
-use super::contract::{self, keys, Component, FeatureSet, InputCompression, Variant, COLOR_CHANNELS, TAPS};
+use super::contract::{
+    self, keys, Component, FeatureSet, InputCompression, Outputs, Reconstruction, Variant, COLOR_CHANNELS, TAPS,
+};
 use super::device::Device;
 use super::multiscale::Pyramid;
 use super::EngineError;
@@ -41,6 +43,8 @@ pub struct ModelInfo {
     pub levels: usize,
     /// Who compresses the inputs with symlog (`graph` for contract v1).
     pub input_compression: InputCompression,
+    /// What the graph outputs (`kernels` for contract v1).
+    pub outputs: Outputs,
 }
 
 fn component_or_both<S: serde::Serializer>(c: &Option<Component>, s: S) -> Result<S::Ok, S::Error> {
@@ -75,13 +79,18 @@ pub struct Placement {
     pub threads: usize,
     /// Resolved: `cpu` or `cuda:N` ([`Device::resolve`]).
     pub device: Device,
+    /// Where contract-v2 kernels are applied (which file of a v2 variant is loaded).
+    pub reconstruction: Reconstruction,
 }
 
 impl Placement {
     pub fn cpu(threads: usize) -> Placement {
-        Placement { threads, device: Device::Cpu }
+        Placement { threads, device: Device::Cpu, reconstruction: Reconstruction::Engine }
     }
 }
+
+/// The file of a contract-v2 variant with the reconstruction in the graph.
+pub const RECON_FILE: &str = "model-recon.onnx";
 
 /// Session options: `threads` intra-op threads, no spinning (the engine is idle between
 /// jobs), all graph optimizations; on `cuda:N` ONNX Runtime's CUDA execution provider on
@@ -245,6 +254,7 @@ impl Network {
             levels: 1,
             sha256: model.sha256.clone(),
             input_compression: InputCompression::Graph,
+            outputs: Outputs::Kernels,
         };
         Ok(Network { session: model.session, info })
     }
@@ -330,6 +340,29 @@ impl MultiScaleNetwork {
             )
         })?;
 
+        let outputs_value = model.meta.get(keys::OUTPUTS).map(String::as_str);
+        let outputs = Outputs::parse(outputs_value).ok_or_else(|| {
+            model_error(
+                path,
+                format!(
+                    "metadata `{}` is `{}`, expected `kernels` or `filtered`",
+                    keys::OUTPUTS,
+                    outputs_value.unwrap_or_default()
+                ),
+            )
+        })?;
+        if outputs == Outputs::Filtered && input_compression == InputCompression::Engine {
+            return Err(model_error(
+                path,
+                format!(
+                    "metadata `{}` is `filtered` but `{}` is `engine`: a graph that reconstructs needs its \
+                     inputs uncompressed, so it must compress them itself (`graph`)",
+                    keys::OUTPUTS,
+                    keys::INPUT_COMPRESSION
+                ),
+            ));
+        }
+
         let inputs = model.session.inputs();
         let expected_inputs = [
             ("diffuse", COLOR_CHANNELS),
@@ -337,10 +370,17 @@ impl MultiScaleNetwork {
             ("features", common.features.feature_channels()),
         ];
         let mut expected_outputs = Vec::new();
-        for l in 0..levels {
-            expected_outputs.push((format!("kernel_{l}"), 2 * kernel_size * kernel_size));
-            if l + 1 < levels {
-                expected_outputs.push((format!("blend_{l}"), 2));
+        match outputs {
+            Outputs::Kernels => {
+                for l in 0..levels {
+                    expected_outputs.push((format!("kernel_{l}"), 2 * kernel_size * kernel_size));
+                    if l + 1 < levels {
+                        expected_outputs.push((format!("blend_{l}"), 2));
+                    }
+                }
+            }
+            Outputs::Filtered => {
+                expected_outputs.extend(FILTERED_OUTPUTS.map(|name| (name.to_string(), 3)));
             }
         }
         for (name, channels) in expected_inputs {
@@ -366,6 +406,7 @@ impl MultiScaleNetwork {
             levels,
             sha256: model.sha256.clone(),
             input_compression,
+            outputs,
         };
         Ok(MultiScaleNetwork { session: model.session, info, size_multiple })
     }
@@ -417,6 +458,47 @@ impl MultiScaleNetwork {
             }
         }
         Ok(consume(pyramids))
+    }
+}
+
+/// Outputs of a graph with the reconstruction in it (`mcdenoise.outputs` `filtered`).
+const FILTERED_OUTPUTS: [&str; 2] = ["diffuse_filtered", "specular_filtered"];
+
+impl MultiScaleNetwork {
+    /// Runs a graph with the reconstruction in it (`mcdenoise.outputs` `filtered`) on one
+    /// region and hands the filtered preprocessed color of the diffuse and the specular
+    /// (each `[3, h, w]`) to `consume`.
+    pub fn run_filtered<R>(
+        &mut self,
+        diffuse: &[f32],
+        specular: &[f32],
+        features: &[f32],
+        h: usize,
+        w: usize,
+        consume: impl FnOnce([&[f32]; 2]) -> R,
+    ) -> Result<R, EngineError> {
+        let c = features.len() / (h * w);
+        let name = self.info.variant;
+        let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
+        let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
+        let specular = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], specular)).map_err(fail)?;
+        let features = TensorRef::from_array_view(([1usize, c, h, w], features)).map_err(fail)?;
+        let outputs = self
+            .session
+            .run(ort::inputs!["diffuse" => diffuse, "specular" => specular, "features" => features])
+            .map_err(fail)?;
+        let want = [1, 3, h as i64, w as i64];
+        let mut planes = [&[][..]; 2];
+        for (slot, output) in FILTERED_OUTPUTS.iter().enumerate() {
+            let (shape, data) = outputs[*output].try_extract_tensor::<f32>().map_err(fail)?;
+            if shape.iter().copied().collect::<Vec<i64>>() != want {
+                return Err(EngineError::Inference(format!(
+                    "{name}: output `{output}` has shape {shape:?}, expected {want:?} for a {w}x{h} region"
+                )));
+            }
+            planes[slot] = data;
+        }
+        Ok(consume(planes))
     }
 }
 
@@ -548,7 +630,41 @@ fn load_variant(
         ));
     }
     if v2.exists() {
-        let net = MultiScaleNetwork::load(env, &v2, variant, placement)?;
+        let recon = dir.join(RECON_FILE);
+        let in_graph = match placement.reconstruction {
+            Reconstruction::Engine => false,
+            Reconstruction::Graph if !recon.exists() => {
+                return Err(model_error(
+                    dir,
+                    format!(
+                        "--reconstruction graph needs {RECON_FILE} beside model.onnx (the same network with \
+                         its reconstruction, `export_ms --recon`)"
+                    ),
+                ))
+            }
+            Reconstruction::Graph => true,
+            Reconstruction::Auto => recon.exists() && matches!(placement.device, Device::Cuda(_)),
+        };
+        if !in_graph && matches!(placement.device, Device::Cuda(_)) {
+            tracing::warn!(
+                variant = %variant,
+                "no {RECON_FILE}: the kernels are applied on the CPU after each GPU inference"
+            );
+        }
+        let file = if in_graph { recon } else { v2 };
+        let net = MultiScaleNetwork::load(env, &file, variant, placement)?;
+        let want = if in_graph { Outputs::Filtered } else { Outputs::Kernels };
+        if net.info.outputs != want {
+            return Err(model_error(
+                &file,
+                format!(
+                    "metadata `{}` is `{}`, expected `{}` in this file",
+                    keys::OUTPUTS,
+                    net.info.outputs.name(),
+                    want.name()
+                ),
+            ));
+        }
         return Ok(Some(VariantModel { variant, features: net.info.features, networks: Networks::MultiScale(net) }));
     }
     let [d, s] = &v1;

@@ -159,21 +159,19 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
         let (gx, gy) = rest.split_at_mut(base_count * n);
         let normal = frame.planes(Buffer::Normal);
         let depth = frame.plane(Buffer::Depth, 0);
-        let mut k = 0;
-        let mut emit = |f: &(dyn Fn(usize) -> f32 + Sync)| {
-            with_gradients(frame, rect, f, &mut base[k * n..][..n], &mut gx[k * n..][..n], &mut gy[k * n..][..n]);
-            k += 1;
-        };
-        for plane in normal {
-            emit(&|i| bounded(plane[i]));
+        // One (base, gx, gy) triple of planes per feature, in input order.
+        let mut slots = base.chunks_mut(n).zip(gx.chunks_mut(n)).zip(gy.chunks_mut(n)).map(|((b, x), y)| (b, x, y));
+        let mut next = || slots.next().expect("one slot per feature");
+        for plane in normal.iter().chain(albedo) {
+            let (b, x, y) = next();
+            with_gradients(frame, rect, |i| bounded(plane[i]), b, x, y);
         }
-        for plane in albedo {
-            emit(&|i| bounded(plane[i]));
-        }
-        emit(&|i| scaled(depth[i], stats.depth_max));
+        let (b, x, y) = next();
+        with_gradients(frame, rect, |i| scaled(depth[i], stats.depth_max), b, x, y);
         if set.uses_covariance() {
             let cov = frame.plane(Buffer::Covariance, 0);
-            emit(&|i| scaled(cov[i], stats.covariance_max));
+            let (b, x, y) = next();
+            with_gradients(frame, rect, |i| scaled(cov[i], stats.covariance_max), b, x, y);
         }
 
         let mut var_buffers = vec![
@@ -222,6 +220,10 @@ fn per_pixel(frame: &Frame, rect: Rect, out: &mut [f32], f: impl Fn(usize) -> f3
 
 /// Fills `base` with `f` and `gx`, `gy` with its forward differences, 0 past the frame's
 /// last column / row.
+///
+/// `f` is evaluated once per pixel (plus one row per block of rows and the column right of
+/// the rect): each row's values go to a row buffer, from which the value and both
+/// differences are plain slice arithmetic that the compiler vectorises.
 fn with_gradients(
     frame: &Frame,
     rect: Rect,
@@ -230,17 +232,41 @@ fn with_gradients(
     gx: &mut [f32],
     gy: &mut [f32],
 ) {
-    let (fw, fh) = (frame.width, frame.height);
-    base.par_chunks_mut(rect.w).zip(gx.par_chunks_mut(rect.w)).zip(gy.par_chunks_mut(rect.w)).enumerate().for_each(
-        |(row, ((base, gx), gy))| {
-            let y = rect.y + row;
-            for x in 0..rect.w {
-                let fx = rect.x + x;
-                let i = y * fw + fx;
-                let v = f(i);
-                base[x] = v;
-                gx[x] = if fx + 1 < fw { f(i + 1) - v } else { 0.0 };
-                gy[x] = if y + 1 < fh { f(i + fw) - v } else { 0.0 };
+    /// Rows per parallel task: each task evaluates one row beyond its block.
+    const ROWS: usize = 16;
+    let (fw, fh, w) = (frame.width, frame.height, rect.w);
+    // The rect's columns and, inside the frame, the one to their right (for gx).
+    let cols = (w + 1).min(fw - rect.x);
+    let row_values = |y: usize, out: &mut [f32]| {
+        let start = y * fw + rect.x;
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = f(start + x);
+        }
+    };
+    let block = ROWS * w;
+    base.par_chunks_mut(block).zip(gx.par_chunks_mut(block)).zip(gy.par_chunks_mut(block)).enumerate().for_each(
+        |(b, ((base, gx), gy))| {
+            let (mut cur, mut next) = (vec![0f32; cols], vec![0f32; cols]);
+            let y0 = rect.y + b * ROWS;
+            row_values(y0, &mut cur);
+            let rows = base.chunks_mut(w).zip(gx.chunks_mut(w)).zip(gy.chunks_mut(w));
+            for (r, ((base, gx), gy)) in rows.enumerate() {
+                base.copy_from_slice(&cur[..w]);
+                for ((g, a), b) in gx.iter_mut().zip(&cur[..cols - 1]).zip(&cur[1..]) {
+                    *g = b - a;
+                }
+                if cols == w {
+                    gx[w - 1] = 0.0;
+                }
+                if y0 + r + 1 < fh {
+                    row_values(y0 + r + 1, &mut next);
+                    for ((g, a), b) in gy.iter_mut().zip(&cur[..w]).zip(&next[..w]) {
+                        *g = b - a;
+                    }
+                    std::mem::swap(&mut cur, &mut next);
+                } else {
+                    gy.fill(0.0);
+                }
             }
         },
     );

@@ -146,6 +146,7 @@ impl Settings {
         engine.threads = args.threads_per_worker();
         engine.ort_library = args.ort_library.clone();
         engine.device = args.device;
+        engine.reconstruction = args.reconstruction;
         Settings {
             capacity: args.queue_capacity,
             result_ttl: args.result_ttl,

@@ -80,6 +80,7 @@ impl Denoiser for FakeDenoiser {
             architecture: "fake".into(),
             sha256: String::new(),
             input_compression: crate::engine::InputCompression::Graph,
+            outputs: crate::engine::Outputs::Kernels,
         }]
     }
 

@@ -46,6 +46,8 @@ META_KEYS = (
 )
 # Contract v2 only, optional: `graph` (absent) or `engine`, who applies symlog to the inputs.
 META_INPUT_COMPRESSION = "mcdenoise.input_compression"
+# Contract v2 only, optional: `kernels` (absent) or `filtered` (the reconstruction in the graph).
+META_OUTPUTS = "mcdenoise.outputs"
 
 _BASE = (
     "normal.R", "normal.G", "normal.B",

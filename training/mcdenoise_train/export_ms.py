@@ -22,6 +22,12 @@ The inputs' symlog compression is left to the engine (`mcdenoise.input_compressi
 quarter of ONNX Runtime's time for the default network, where the engine's preprocessing
 does it while the tensors are in cache. `--compression graph` keeps it in the graph (the
 form models had before the key existed, which the engine still runs).
+
+`--recon` also writes `<variant>/model-recon.onnx`: the same network with the multi-scale
+reconstruction in the graph (`mcdenoise.outputs` `filtered`: outputs `diffuse_filtered` and
+`specular_filtered` `[N,3,H,W]`, the filtered preprocessed colors), which the engine runs
+where the reconstruction belongs on the device (a GPU) rather than in its own CPU code. It
+compresses its inputs itself: the reconstruction needs them uncompressed.
 """
 
 from __future__ import annotations
@@ -38,8 +44,8 @@ import onnx
 import torch
 
 from .checkpoint import load_msnet
-from .contract import (COLOR_CHANNELS, FEATURES_FULL, META_INPUT_COMPRESSION, NOCOV_INDICES, feature_names,
-                       variant_for)
+from .contract import (COLOR_CHANNELS, FEATURES_FULL, META_INPUT_COMPRESSION, META_OUTPUTS, NOCOV_INDICES,
+                       feature_names, variant_for)
 from .export import read_metadata as read_metadata_v2
 from .export import write_model
 from .model import symlog
@@ -48,6 +54,13 @@ from .msnet import MSNet, add_shape_arguments, from_arguments
 CONTRACT = 2
 OPSET = 17
 COMPRESSIONS = ("engine", "graph")
+RECON_FILE = "model-recon.onnx"
+FILTERED_OUTPUTS = ("diffuse_filtered", "specular_filtered")
+# The reconstruction's operators, beyond the network's (Shape, Gather, Unsqueeze, Concat: the
+# slices' dynamic bounds).
+RECON_OPS = frozenset({"Softmax", "Pad", "Slice", "Mul", "Add", "Sub", "AveragePool", "Sigmoid", "Resize", "Shape",
+                       "Gather", "Unsqueeze", "Concat", "Constant", "Cast", "Split", "ConstantOfShape", "Div",
+                       "Reshape", "Transpose"})
 ALLOWED_OPS = frozenset({"Conv", "Relu", "Add", "Concat", "MaxPool", "Resize", "Sign", "Abs", "Log", "Mul", "Constant"})
 _TRACE_HW = (32, 48)
 _VERIFY_SHAPE = (2, 48, 80)
@@ -115,6 +128,79 @@ def _to_proto(model: MSNet) -> onnx.ModelProto:
     from .export import _drop_initializer_identities
 
     _drop_initializer_identities(proto.graph)
+    return proto
+
+
+class WithReconstruction(torch.nn.Module):
+    """`net` and its reconstruction in one graph: the filtered preprocessed color of each
+    component (`recon_ms.reconstruct_component` with the plain filter)."""
+
+    def __init__(self, net: MSNet):
+        super().__init__()
+        self.net = net
+
+    def forward(self, diffuse: torch.Tensor, specular: torch.Tensor, features: torch.Tensor):
+        from .recon_ms import filter_plain, reconstruct_component, split_outputs
+
+        k, b = split_outputs(self.net(diffuse, specular, features), self.net.levels)
+        return tuple(reconstruct_component(k[c], b[c], x[:, :3], filter=filter_plain)
+                     for c, x in (("diffuse", diffuse), ("specular", specular)))
+
+
+def _recon_proto(model: MSNet) -> onnx.ModelProto:
+    h, w = _TRACE_HW
+    args = (torch.zeros(1, COLOR_CHANNELS, h, w), torch.zeros(1, COLOR_CHANNELS, h, w),
+            torch.zeros(1, model.in_features, h, w))
+    dyn = {0: "N", 2: "H", 3: "W"}
+    dynamic = {name: dyn for name in ("diffuse", "specular", "features", *FILTERED_OUTPUTS)}
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(WithReconstruction(model), args, buf, dynamo=False,
+                          input_names=["diffuse", "specular", "features"], output_names=list(FILTERED_OUTPUTS),
+                          dynamic_axes=dynamic, opset_version=OPSET, do_constant_folding=True)
+    proto = onnx.load_from_string(buf.getvalue())
+    from .export import _drop_initializer_identities
+
+    _drop_initializer_identities(proto.graph)
+    onnx.checker.check_model(proto, full_check=True)
+    ops = {n.op_type for n in proto.graph.node}
+    if not ops <= ALLOWED_OPS | RECON_OPS:
+        raise RuntimeError(f"exported graph has unexpected ops {sorted(ops - ALLOWED_OPS - RECON_OPS)}")
+    return proto
+
+
+def verify_recon(path: str | os.PathLike, model: MSNet, seed: int = 0) -> float:
+    """max |onnxruntime - torch| of a `model-recon.onnx` (relative to max(1, max |torch|))."""
+    import onnxruntime as ort
+
+    n, h, w = _VERIFY_SHAPE
+    g = torch.Generator().manual_seed(seed)
+    d = torch.rand(n, COLOR_CHANNELS, h, w, generator=g) * 4
+    s = torch.rand(n, COLOR_CHANNELS, h, w, generator=g)
+    f = torch.rand(n, model.in_features, h, w, generator=g)
+    with torch.no_grad():
+        ref = [t.numpy() for t in WithReconstruction(model)(d, s, f)]
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    out = sess.run(list(FILTERED_OUTPUTS), {"diffuse": d.numpy(), "specular": s.numpy(), "features": f.numpy()})
+    worst = 0.0
+    for name, o, r in zip(FILTERED_OUTPUTS, out, ref):
+        diff = float(np.max(np.abs(o - r))) / max(1.0, float(np.max(np.abs(r))))
+        if o.shape != r.shape or not diff <= 1e-4:
+            raise RuntimeError(f"{path}: {name} differs from torch ({o.shape} vs {r.shape}, {diff:g})")
+        worst = max(worst, diff)
+    return worst
+
+
+def export_recon(model: MSNet, path: str | os.PathLike, variant: str, verify: bool = True) -> onnx.ModelProto:
+    """Writes `model` with its reconstruction as `path` (`model-recon.onnx`)."""
+    metadata = {**metadata_for(model, variant, "graph"), META_OUTPUTS: "filtered"}
+    net = copy.deepcopy(model).cpu().float().eval()
+    net.compress_inputs = True
+    proto = _recon_proto(net)
+    write_model(proto, metadata, f"mcdenoise contract v{CONTRACT} {variant}, reconstruction in the graph", path)
+    if verify:
+        verify_recon(path, net)
     return proto
 
 
@@ -187,6 +273,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--compression", choices=COMPRESSIONS, default="engine",
                    help="who applies symlog to the inputs: the engine (default, faster) or the graph")
+    p.add_argument("--recon", action="store_true",
+                   help=f"also write <variant>/{RECON_FILE}, the reconstruction in the graph (for GPUs)")
     add_shape_arguments(p)
     p.add_argument("--head-gain", type=float, default=1.0, help="scale of the heads' weights (random models)")
     a = p.parse_args(argv)
@@ -204,6 +292,8 @@ def main(argv=None) -> int:
         m = net if v == "full" else nocov_from_full(net)
         path = Path(a.out) / v / "model.onnx"
         export_onnx(m, path, v, compression=a.compression)
+        if a.recon:
+            export_recon(m, path.with_name(RECON_FILE), v)
         print(f"{path}: {path.stat().st_size} bytes, {m.param_count()} params, {m.flops_per_pixel()} FLOP/px, "
               f"receptive radius {m.receptive_radius()}")
     return 0

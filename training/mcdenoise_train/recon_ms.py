@@ -77,7 +77,25 @@ def up2(x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
 
 
-def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor) -> torch.Tensor:
+def filter_plain(logits: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
+    """`filter_k` as plain tensor operators (softmax, edge padding, k² shifted products),
+    whatever `color` needs: the form an ONNX export traces (`export_ms --recon`; the tap
+    count is static, the sides stay dynamic)."""
+    taps = int(logits.shape[1])
+    k = int(round(taps ** 0.5))
+    r = k // 2
+    h, w = logits.shape[2], logits.shape[3]
+    weights = torch.softmax(logits, dim=1)
+    padded = F.pad(color, (r, r, r, r), mode="replicate")
+    out = weights[:, 0:1] * padded[:, :, 0:h, 0:w]
+    for t in range(1, taps):
+        dy, dx = divmod(t, k)
+        out = out + weights[:, t : t + 1] * padded[:, :, dy : dy + h, dx : dx + w]
+    return out
+
+
+def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor,
+                          filter=filter_k) -> torch.Tensor:
     """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits)."""
     levels = len(kernels)
     if len(blends) != levels - 1:
@@ -85,7 +103,7 @@ def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torc
     pyramid = [color]
     for _ in range(levels - 1):
         pyramid.append(F.avg_pool2d(pyramid[-1], 2))
-    filtered = [filter_k(kernels[l], pyramid[l]) for l in range(levels)]
+    filtered = [filter(kernels[l], pyramid[l]) for l in range(levels)]
     out = filtered[-1]
     for l in reversed(range(levels - 1)):
         a = torch.sigmoid(blends[l].float())
@@ -122,4 +140,4 @@ def reconstruct(outputs: Sequence[torch.Tensor], levels: int, diffuse_color: tor
     return Reconstruction(d_pre, s_pre, d, s, d + s)
 
 
-__all__ = ["Reconstruction", "filter_k", "reconstruct", "reconstruct_component", "split_outputs", "up2"]
+__all__ = ["Reconstruction", "filter_k", "filter_plain", "reconstruct", "reconstruct_component", "split_outputs", "up2"]

@@ -124,6 +124,37 @@ def test_export_round_trip(tmp_path, compression):
     assert np.isfinite(float(meta["mcdenoise.flops_per_pixel"]))
 
 
+def test_export_with_reconstruction_round_trip(tmp_path):
+    from mcdenoise_train.export_ms import export_recon, verify_recon
+
+    torch.manual_seed(1)
+    net = MSNet(28, **SMALL).eval()
+    with torch.no_grad():
+        for h in [*net.kernel_heads, *net.blend_heads]:
+            h.weight.mul_(20)  # kernels far from uniform: tap order and edges matter
+    path = tmp_path / "full" / "model-recon.onnx"
+    export_recon(net, path, "full")
+    meta = read_metadata_v2(path)
+    assert meta["mcdenoise.outputs"] == "filtered" and meta["mcdenoise.input_compression"] == "graph"
+    assert verify_recon(path, net) < 1e-4
+    # The graph's outputs are recon_ms's reconstruction of the network's kernels.
+    import onnxruntime as ort
+    from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
+
+    g = torch.Generator().manual_seed(3)
+    d, s, f = torch.rand(1, 10, 32, 48, generator=g), torch.rand(1, 10, 32, 48, generator=g), torch.rand(1, 28, 32, 48, generator=g)
+    with torch.no_grad():
+        k, b = split_outputs(net(d, s, f), net.levels)
+        want = reconstruct_component(k["specular"], b["specular"], s[:, :3]).numpy()
+    got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        ["specular_filtered"], {"diffuse": d.numpy(), "specular": s.numpy(), "features": f.numpy()})[0]
+    assert np.abs(got - want).max() <= 1e-4 * max(1.0, np.abs(want).max())
+    with torch.no_grad():
+        net.blend_heads[0].bias.add_(3.0)
+    with pytest.raises(RuntimeError):
+        verify_recon(path, net)
+
+
 def test_filter_gradient_matches_autograd():
     """The written-out backward of the training path equals autograd's on the plain loop."""
     g = torch.Generator().manual_seed(6)

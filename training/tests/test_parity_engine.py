@@ -265,6 +265,10 @@ def case_v2(tmp_path_factory):
         export_v2(net, root / "models" / v / "model.onnx", v)
     # The same full network with the symlog in its graph (`input_compression` `graph`).
     export_v2(full, root / "models-graph" / "full" / "model.onnx", "full", compression="graph")
+    # And with its reconstruction in the graph (`--reconstruction graph`, for GPUs).
+    from mcdenoise_train.export_ms import RECON_FILE, export_recon
+
+    export_recon(full, root / "models-graph" / "full" / RECON_FILE, "full")
     return dict(root=root, paths=paths, nets=nets, models=root / "models")
 
 
@@ -288,7 +292,7 @@ def test_beauty_inputs_match_the_training_side(request):
 
 
 @pytest.mark.parametrize("variant,compression", [("full", "engine"), ("nocov", "engine"), ("beauty", "engine"),
-                                                 ("full", "graph")])
+                                                 ("full", "graph"), ("full", "graph-recon")])
 def test_run_matches_torch_v2(request, variant, compression):
     from mcdenoise_train.msnet import pad_to_multiple
     from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
@@ -316,6 +320,7 @@ def test_run_matches_torch_v2(request, variant, compression):
 
     out = root / f"out-{variant}-{compression}.exr"
     models = case["models"] if compression == "engine" else root / "models-graph"
-    engine(exe, "run", case["paths"][variant], "-o", out, "--models", models,
+    where = "graph" if compression == "graph-recon" else "engine"
+    engine(exe, "run", case["paths"][variant], "-o", out, "--models", models, "--reconstruction", where,
            "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", variant)
     _compare_output(out, expect, (H2, W2), float_tol=1e-5)
