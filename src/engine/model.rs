@@ -92,6 +92,9 @@ impl Placement {
 /// The file of a contract-v2 variant with the reconstruction in the graph.
 pub const RECON_FILE: &str = "model-recon.onnx";
 
+/// Outputs of a graph with the reconstruction in it (`mcdenoise.outputs` `filtered`).
+const FILTERED_OUTPUTS: [&str; 2] = ["diffuse_filtered", "specular_filtered"];
+
 /// Session options: `threads` intra-op threads, no spinning (the engine is idle between
 /// jobs), all graph optimizations; on `cuda:N` ONNX Runtime's CUDA execution provider on
 /// that GPU, failing rather than falling back to the CPU. A helper returning `ort::Result`
@@ -171,6 +174,15 @@ impl Opened {
         } else {
             Err(model_error(&self.path, format!("metadata `{key}` is `{got}`, expected `{want}`{hint}")))
         }
+    }
+
+    /// An optional key's value through `parse` (which also gives the default for `None`);
+    /// `expected` names the accepted values in the error.
+    fn optional<T>(&self, key: &str, parse: fn(Option<&str>) -> Option<T>, expected: &str) -> Result<T, EngineError> {
+        let value = self.meta.get(key).map(String::as_str);
+        parse(value).ok_or_else(|| {
+            model_error(&self.path, format!("metadata `{key}` is `{}`, expected {expected}", value.unwrap_or_default()))
+        })
     }
 
     fn number<T: std::str::FromStr>(&self, key: &str) -> Result<T, EngineError>
@@ -328,29 +340,9 @@ impl MultiScaleNetwork {
             &format!(" (2^(levels − 1), levels = {levels})"),
         )?;
         let architecture = model.get(keys::ARCHITECTURE)?.to_string();
-        let compression = model.meta.get(keys::INPUT_COMPRESSION).map(String::as_str);
-        let input_compression = InputCompression::parse(compression).ok_or_else(|| {
-            model_error(
-                path,
-                format!(
-                    "metadata `{}` is `{}`, expected `graph` or `engine`",
-                    keys::INPUT_COMPRESSION,
-                    compression.unwrap_or_default()
-                ),
-            )
-        })?;
-
-        let outputs_value = model.meta.get(keys::OUTPUTS).map(String::as_str);
-        let outputs = Outputs::parse(outputs_value).ok_or_else(|| {
-            model_error(
-                path,
-                format!(
-                    "metadata `{}` is `{}`, expected `kernels` or `filtered`",
-                    keys::OUTPUTS,
-                    outputs_value.unwrap_or_default()
-                ),
-            )
-        })?;
+        let input_compression =
+            model.optional(keys::INPUT_COMPRESSION, InputCompression::parse, "`graph` or `engine`")?;
+        let outputs = model.optional(keys::OUTPUTS, Outputs::parse, "`kernels` or `filtered`")?;
         if outputs == Outputs::Filtered && input_compression == InputCompression::Engine {
             return Err(model_error(
                 path,
@@ -423,26 +415,11 @@ impl MultiScaleNetwork {
         w: usize,
         consume: impl FnOnce([Pyramid; 2]) -> R,
     ) -> Result<R, EngineError> {
-        let c = features.len() / (h * w);
         let (k, levels) = (self.info.kernel_size, self.info.levels);
         let name = self.info.variant;
-        let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
-        let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
-        let specular = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], specular)).map_err(fail)?;
-        let features = TensorRef::from_array_view(([1usize, c, h, w], features)).map_err(fail)?;
-        let outputs = self
-            .session
-            .run(ort::inputs!["diffuse" => diffuse, "specular" => specular, "features" => features])
-            .map_err(fail)?;
-        let tensor = |output: String, channels: usize, l: usize| -> Result<&[f32], EngineError> {
-            let (shape, data) = outputs[output.as_str()].try_extract_tensor::<f32>().map_err(fail)?;
-            let want = [1, channels as i64, (h >> l) as i64, (w >> l) as i64];
-            if shape.iter().copied().collect::<Vec<i64>>() != want {
-                return Err(EngineError::Inference(format!(
-                    "{name}: output `{output}` has shape {shape:?}, expected {want:?} for a {w}x{h} region"
-                )));
-            }
-            Ok(data)
+        let outputs = self.infer(diffuse, specular, features, h, w)?;
+        let tensor = |output: String, channels: usize, l: usize| {
+            extract(&outputs, name, &output, [channels, h >> l, w >> l], (w, h))
         };
         let mut pyramids = [(); 2].map(|_| Pyramid { kernel_size: k, kernels: Vec::new(), blends: Vec::new() });
         for l in 0..levels {
@@ -459,12 +436,7 @@ impl MultiScaleNetwork {
         }
         Ok(consume(pyramids))
     }
-}
 
-/// Outputs of a graph with the reconstruction in it (`mcdenoise.outputs` `filtered`).
-const FILTERED_OUTPUTS: [&str; 2] = ["diffuse_filtered", "specular_filtered"];
-
-impl MultiScaleNetwork {
     /// Runs a graph with the reconstruction in it (`mcdenoise.outputs` `filtered`) on one
     /// region and hands the filtered preprocessed color of the diffuse and the specular
     /// (each `[3, h, w]`) to `consume`.
@@ -477,29 +449,53 @@ impl MultiScaleNetwork {
         w: usize,
         consume: impl FnOnce([&[f32]; 2]) -> R,
     ) -> Result<R, EngineError> {
+        let name = self.info.variant;
+        let outputs = self.infer(diffuse, specular, features, h, w)?;
+        let [d, s] = FILTERED_OUTPUTS;
+        let planes = [extract(&outputs, name, d, [3, h, w], (w, h))?, extract(&outputs, name, s, [3, h, w], (w, h))?];
+        Ok(consume(planes))
+    }
+
+    /// Runs the session on one region's inputs (`[10, h, w]`, `[10, h, w]`, `[C, h, w]`).
+    fn infer(
+        &mut self,
+        diffuse: &[f32],
+        specular: &[f32],
+        features: &[f32],
+        h: usize,
+        w: usize,
+    ) -> Result<ort::session::SessionOutputs<'_>, EngineError> {
         let c = features.len() / (h * w);
         let name = self.info.variant;
         let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
         let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
         let specular = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], specular)).map_err(fail)?;
         let features = TensorRef::from_array_view(([1usize, c, h, w], features)).map_err(fail)?;
-        let outputs = self
-            .session
+        self.session
             .run(ort::inputs!["diffuse" => diffuse, "specular" => specular, "features" => features])
-            .map_err(fail)?;
-        let want = [1, 3, h as i64, w as i64];
-        let mut planes = [&[][..]; 2];
-        for (slot, output) in FILTERED_OUTPUTS.iter().enumerate() {
-            let (shape, data) = outputs[*output].try_extract_tensor::<f32>().map_err(fail)?;
-            if shape.iter().copied().collect::<Vec<i64>>() != want {
-                return Err(EngineError::Inference(format!(
-                    "{name}: output `{output}` has shape {shape:?}, expected {want:?} for a {w}x{h} region"
-                )));
-            }
-            planes[slot] = data;
-        }
-        Ok(consume(planes))
+            .map_err(fail)
     }
+}
+
+/// The data of output `output`, checked to be `[1, channels, rows, columns]` (`dims`) for a
+/// `region` = (w, h) region.
+fn extract<'a>(
+    outputs: &'a ort::session::SessionOutputs<'_>,
+    variant: Variant,
+    output: &str,
+    dims: [usize; 3],
+    region: (usize, usize),
+) -> Result<&'a [f32], EngineError> {
+    let (shape, data) =
+        outputs[output].try_extract_tensor::<f32>().map_err(|e| EngineError::Inference(format!("{variant}: {e}")))?;
+    let want = [1, dims[0] as i64, dims[1] as i64, dims[2] as i64];
+    if shape.iter().copied().collect::<Vec<i64>>() != want {
+        let (w, h) = region;
+        return Err(EngineError::Inference(format!(
+            "{variant}: output `{output}` has shape {shape:?}, expected {want:?} for a {w}x{h} region"
+        )));
+    }
+    Ok(data)
 }
 
 fn with_levels_hint(e: EngineError, levels: usize) -> EngineError {
