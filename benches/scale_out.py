@@ -56,13 +56,16 @@ def request(url: str, data: bytes | None = None, method: str = "GET") -> dict:
 
 
 class Daemon:
-    def __init__(self, a, work: Path, name: str, store: str | None):
+    """`mcdenoise serve` on loopback ports with its data under `work/name`: `a.workers`
+    workers (1 without it) of `a.threads` threads; `extra` are more arguments."""
+
+    def __init__(self, a, work: Path, name: str, store: str | None, extra: tuple[str, ...] = ()):
         self.http = free_port()
         self.log = open(work / f"{name}.log", "w")
         cmd = [
             a.bin, "serve", "--http", f"127.0.0.1:{self.http}", "--grpc", f"127.0.0.1:{free_port()}",
-            "--workers", "1", "--threads-per-worker", str(a.threads), "--models", a.models,
-            "--data-dir", str(work / name), "--queue-capacity", str(max(64, a.jobs)), "--log", "warn",
+            "--workers", str(getattr(a, "workers", 1)), "--threads-per-worker", str(a.threads), "--models", a.models,
+            "--data-dir", str(work / name), "--queue-capacity", str(max(64, a.jobs)), "--log", "warn", *extra,
         ]
         if store:
             cmd += ["--store", store]

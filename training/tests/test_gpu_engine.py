@@ -1,0 +1,27 @@
+"""benches/gpu_engine.py, the GPU benchmark against OIDN's CUDA device, run end to end on the
+CPU build with the tiny models: parity of the reconstruction in the graph with the engine's,
+the daemon's throughput rows and the report's fields (the figures come from a GPU machine)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from test_train import BIN, needs_engine
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@needs_engine
+def test_gpu_engine_bench_runs_on_the_cpu(tmp_path):
+    out = tmp_path / "gpu.json"
+    subprocess.run([sys.executable, str(ROOT / "benches" / "gpu_engine.py"), "--device", "cpu", "--sizes", "96x64",
+                    "--jobs", "2", "--clients", "1,2", "--workers", "1", "--threads", "1", "--bin", BIN,
+                    "--models", str(ROOT / "tests" / "fixtures" / "models" / "tiny-v2"), "--out", str(out)],
+                   check=True, capture_output=True, env={**os.environ})
+    r = json.loads(out.read_text())
+    assert r["parity"]["reconstruction"] == "graph" and r["parity"]["relative_to_max"] <= 1e-4
+    assert [(row["frame"], row["clients"], row["jobs"]) for row in r["daemon"]] == [("96x64", 1, 2), ("96x64", 2, 4)]
+    assert all(row["frames_per_s"] > 0 and row["job_stages_ms_median"]["inference"] > 0 for row in r["daemon"])
+    assert r["oidn"] is None
