@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benches"))
 sys.path.insert(0, str(ROOT / "training"))
 
-from scale_out import Daemon, request  # noqa: E402
+from scale_out import Daemon, request, wait_job  # noqa: E402
 
 
 def write_frame(path: Path, w: int, h: int) -> None:
@@ -88,14 +88,7 @@ def daemon_runs(a, work: Path, frames: dict[str, Path]) -> list[dict]:
                 def client() -> None:
                     for _ in range(a.jobs):
                         t = time.monotonic()
-                        job_id = request(d.base + "/v1/jobs", data, "POST")["id"]
-                        while True:
-                            j = request(f"{d.base}/v1/jobs/{job_id}")
-                            if j["state"] in ("succeeded", "failed", "cancelled"):
-                                break
-                            time.sleep(0.005)
-                        if j["state"] != "succeeded":
-                            raise RuntimeError(f"job {job_id} {j['state']}: {j.get('error')}")
+                        j = wait_job(d.base, request(d.base + "/v1/jobs", data, "POST")["id"], poll=0.005)
                         with lock:
                             jobs.append({**j, "latency_s": time.monotonic() - t})
 

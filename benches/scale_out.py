@@ -55,6 +55,18 @@ def request(url: str, data: bytes | None = None, method: str = "GET") -> dict:
         return json.loads(r.read() or b"{}")
 
 
+def wait_job(base: str, job_id: str, poll: float = 0.02) -> dict:
+    """Polls job `job_id` on the daemon at `base` until it ends; its record if it succeeded."""
+    while True:
+        j = request(f"{base}/v1/jobs/{job_id}")
+        if j["state"] in ("succeeded", "failed", "cancelled"):
+            break
+        time.sleep(poll)
+    if j["state"] != "succeeded":
+        raise RuntimeError(f"job {job_id} {j['state']}: {j.get('error')}")
+    return j
+
+
 class Daemon:
     """`mcdenoise serve` on loopback ports with its data under `work/name`: `a.workers`
     workers (1 without it) of `a.threads` threads; `extra` are more arguments."""
@@ -116,17 +128,7 @@ def run_config(a, frame: bytes, replicas: int, shared: bool) -> dict:
         t0 = time.monotonic()
         ids = [request(daemons[i % replicas].base + "/v1/jobs", frame, "POST")["id"] for i in range(a.jobs)]
         submitted = time.monotonic() - t0
-        jobs = []
-        for i, job_id in enumerate(ids):
-            base = daemons[(i + 1) % replicas].base
-            while True:
-                j = request(f"{base}/v1/jobs/{job_id}")
-                if j["state"] in ("succeeded", "failed", "cancelled"):
-                    break
-                time.sleep(0.02)
-            if j["state"] != "succeeded":
-                raise RuntimeError(f"job {job_id} {j['state']}: {j.get('error')}")
-            jobs.append(j)
+        jobs = [wait_job(daemons[(i + 1) % replicas].base, job_id) for i, job_id in enumerate(ids)]
         wall = time.monotonic() - t0
         runs = [j["timings_ms"]["total"] for j in jobs]
         return {
