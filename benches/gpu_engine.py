@@ -32,6 +32,8 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "benches"))
 sys.path.insert(0, str(ROOT / "training"))
@@ -64,8 +66,6 @@ def parity(a, work: Path) -> dict:
         reports[name] = run_json(a, str(frame), "-o", str(out), "--device", device, "--reconstruction", where)
         c = read_exr(out)
         colors[name] = [c[k] for k in ("R", "G", "B")]
-    import numpy as np
-
     scale = max(float(np.abs(x).max()) for x in colors["cpu"])
     worst = max(float(np.abs(x - y).max()) for x, y in zip(colors["device"], colors["cpu"]))
     return {"frame": "320x192", "device": reports["device"]["device"],
@@ -80,7 +80,8 @@ def daemon_runs(a, work: Path, frames: dict[str, Path]) -> list[dict]:
         d.wait_ready()
         for size, path in frames.items():
             data = path.read_bytes()
-            request(d.base + "/v1/jobs", data, "POST")  # warm-up (algorithm search), not counted
+            # Warm-up (cuDNN's algorithm search for this shape), finished before the clock starts.
+            wait_job(d.base, request(d.base + "/v1/jobs", data, "POST")["id"])
             for clients in a.clients:
                 jobs: list[dict] = []
                 lock = threading.Lock()

@@ -214,7 +214,10 @@ pub fn run(args: RunArgs) -> Result<()> {
     let flops = engine.flops_per_pixel(out.variant).unwrap_or(0.0);
     let used = engine.models().into_iter().find(|m| m.variant == out.variant);
     let contract = used.map_or(0, |m| m.contract);
-    let reconstruction = if used.is_some_and(|m| m.outputs == engine::Outputs::Filtered) { "graph" } else { "engine" };
+    let reconstruction = match used.map(|m| m.outputs) {
+        Some(engine::Outputs::Filtered) => engine::Reconstruction::Graph,
+        _ => engine::Reconstruction::Engine,
+    };
     eprintln!("denoised {} with variant `{}` (contract {contract})", args.input.display(), out.variant);
     let inference_s = (timings.inference / 1e3).max(1e-9);
     let report = json!({
@@ -226,7 +229,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "contract": contract,
         "tiles": out.tiles,
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
-        "reconstruction": reconstruction,
+        "reconstruction": reconstruction.to_string(),
         "threads": config.threads,
         "device": engine.device().to_string(),
         "flops_per_pixel": flops,
