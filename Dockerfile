@@ -4,10 +4,17 @@
 #   docker build -t mcdenoise .
 #   docker run -p 8080:8080 -p 50051:50051 -v mcdenoise-data:/var/lib/mcdenoise mcdenoise
 #
-# Three stages: the ONNX Runtime library from the pinned wheel (scripts/install-ort),
-# the release binary (scripts/build-release; CI runs the same script through `make test`),
-# and a small runtime image with a non-root user. Dependency builds are cached across
-# builds in BuildKit cache mounts (cargo registry, git checkouts and target/).
+#   docker build --target gpu -t mcdenoise:gpu .        # the GPU image (NVIDIA, CUDA 13)
+#   docker run --gpus all -p 8080:8080 -p 50051:50051 mcdenoise:gpu
+#
+# Stages: the ONNX Runtime library from the pinned wheels (scripts/install-ort: the CPU
+# build, or for the GPU image the CUDA build with the CUDA 13 runtime, cuBLAS, cuRAND and
+# cuDNN 9 from NVIDIA's wheels), the release binary (scripts/build-release; CI runs the
+# same script through `make test`), and a small runtime image with a non-root user, in two
+# flavours: `gpu`, and `cpu`, the last stage and so the default. The GPU image needs only
+# the NVIDIA driver on the host (libcuda.so.1, which the NVIDIA container toolkit mounts).
+# Dependency builds are cached across builds in BuildKit cache mounts (cargo registry, git
+# checkouts and target/).
 
 ARG RUST_IMAGE=rust:1.95-slim-bookworm
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
@@ -19,6 +26,13 @@ WORKDIR /src
 COPY scripts/install-ort scripts/install-ort
 RUN --mount=type=cache,target=/root/.cache/pip \
     bash scripts/install-ort /out/lib
+
+# --- ONNX Runtime for the GPU image: the CUDA build and its libraries (about 1.8 GB) -----
+FROM ${PYTHON_IMAGE} AS ort-cuda
+WORKDIR /src
+COPY scripts/install-ort scripts/install-ort
+RUN --mount=type=cache,target=/root/.cache/pip \
+    bash scripts/install-ort --cuda /out/lib
 
 # --- Build: target/release/mcdenoise -----------------------------------------------------
 FROM ${RUST_IMAGE} AS build
@@ -38,7 +52,7 @@ RUN --mount=type=cache,target=/usr/local/cargo/registry \
     --mount=type=cache,target=/cache/target \
     bash scripts/build-release /out/bin
 
-# --- Runtime -----------------------------------------------------------------------------
+# --- Runtime: what both images share ----------------------------------------------------
 FROM ${RUNTIME_IMAGE} AS runtime
 # UID/GID 10001, also named in USER below and in deploy/ (runAsUser, fsGroup).
 RUN groupadd --system --gid 10001 mcdenoise \
@@ -46,7 +60,6 @@ RUN groupadd --system --gid 10001 mcdenoise \
       --shell /usr/sbin/nologin mcdenoise \
  && mkdir -p /var/lib/mcdenoise \
  && chown mcdenoise:mcdenoise /var/lib/mcdenoise
-COPY --from=ort /out/lib/libonnxruntime.so.1.31.1 /opt/mcdenoise/lib/
 COPY --from=build /out/bin/mcdenoise /usr/local/bin/mcdenoise
 COPY scripts/healthcheck /usr/local/bin/mcdenoise-healthcheck
 COPY models/full /opt/mcdenoise/models/full
@@ -75,3 +88,19 @@ HEALTHCHECK --interval=15s --timeout=5s --start-period=10s --retries=3 \
   CMD ["mcdenoise-healthcheck"]
 ENTRYPOINT ["mcdenoise"]
 CMD ["serve"]
+
+# --- GPU image: the networks on CUDA (`--device cuda`: without a GPU the daemon stops at
+# start and names what is missing), their kernels applied inside the graph
+# (`--reconstruction auto`), two workers so that one frame's CPU work overlaps another's
+# inference. The CUDA libraries are found through LD_LIBRARY_PATH beside the provider.
+FROM runtime AS gpu
+COPY --from=ort-cuda /out/lib/ /opt/mcdenoise/lib/
+ENV LD_LIBRARY_PATH=/opt/mcdenoise/lib \
+    MCDENOISE_DEVICE=cuda \
+    MCDENOISE_WORKERS=2 \
+    NVIDIA_VISIBLE_DEVICES=all \
+    NVIDIA_DRIVER_CAPABILITIES=compute,utility
+
+# --- CPU image (the default) -------------------------------------------------------------
+FROM runtime AS cpu
+COPY --from=ort /out/lib/libonnxruntime.so.1.31.1 /opt/mcdenoise/lib/

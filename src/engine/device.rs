@@ -5,6 +5,9 @@
 //! The CUDA execution provider lives in the GPU build of ONNX Runtime (`onnxruntime-gpu`,
 //! the GPU image; docs/deploy.md). The CPU build the default setup installs has none:
 //! asking it for `cuda` is an error that says so, at start-up, before any job is taken.
+//! The provider also needs the NVIDIA driver (`libcuda.so.1`) and a GPU: both are checked
+//! through the driver's own API ([`cuda_devices`]) before a session is built, so that
+//! `cuda` without them is an error naming what is missing and `auto` falls back to the CPU.
 
 use std::fmt;
 use std::str::FromStr;
@@ -56,21 +59,82 @@ pub fn cuda_provider_available() -> bool {
     CUDA::is_available().unwrap_or(false)
 }
 
+/// The number of GPUs the NVIDIA driver reports (`cuInit`, `cuDeviceGetCount` of
+/// `libcuda.so.1`), or why there is none: no driver library, or the driver's error.
+///
+/// Written against the driver API directly (two calls through `libloading`, which ONNX
+/// Runtime's loader already brings) because the provider itself reports a missing driver
+/// only when the first session is built, as a load error of a model file.
+pub fn cuda_devices() -> Result<u32, String> {
+    type CuInit = unsafe extern "C" fn(u32) -> i32;
+    type CuDeviceGetCount = unsafe extern "C" fn(*mut i32) -> i32;
+    // SAFETY: libcuda.so.1 is the NVIDIA driver library; loading it runs no code of ours, and
+    // both symbols have these C signatures in every CUDA driver API version (cuda.h).
+    unsafe {
+        let lib = libloading::Library::new("libcuda.so.1").map_err(|e| {
+            let why = std::error::Error::source(&e).map_or_else(|| e.to_string(), ToString::to_string);
+            format!("the NVIDIA driver library libcuda.so.1 cannot be loaded ({why})")
+        })?;
+        let init: libloading::Symbol<CuInit> =
+            lib.get(b"cuInit\0").map_err(|e| format!("libcuda.so.1 has no cuInit ({e})"))?;
+        let count: libloading::Symbol<CuDeviceGetCount> =
+            lib.get(b"cuDeviceGetCount\0").map_err(|e| format!("libcuda.so.1 has no cuDeviceGetCount ({e})"))?;
+        match init(0) {
+            0 => {}
+            100 => return Ok(0), // CUDA_ERROR_NO_DEVICE
+            code => return Err(format!("the NVIDIA driver failed to start (cuInit error {code})")),
+        }
+        let mut n = 0i32;
+        match count(&mut n) {
+            0 => Ok(n.max(0) as u32),
+            code => Err(format!("the NVIDIA driver cannot count its GPUs (cuDeviceGetCount error {code})")),
+        }
+    }
+}
+
 impl Device {
     /// The device sessions are built for once the library is loaded: `auto` becomes
-    /// `cuda:0` or `cpu`; `cuda` on a library without the CUDA provider is an error naming
-    /// the library.
+    /// `cuda:0` where the library has the CUDA provider and the driver reports a GPU, else
+    /// `cpu`; `cuda:N` without the provider, the driver or GPU N is an error naming what is
+    /// missing.
     pub fn resolve(self, library: &str) -> Result<Device, String> {
-        let available = cuda_provider_available();
+        let provider = cuda_provider_available();
+        // The driver is asked only when the provider could use it.
+        self.resolve_with(library, provider, if provider { cuda_devices() } else { Ok(0) })
+    }
+
+    /// [`Device::resolve`] given what was found: whether the library has the CUDA provider
+    /// and what the driver said.
+    fn resolve_with(self, library: &str, provider: bool, devices: Result<u32, String>) -> Result<Device, String> {
+        const INSTEAD: &str = "or choose --device cpu (or auto)";
         match self {
-            Device::Auto => Ok(if available { Device::Cuda(0) } else { Device::Cpu }),
-            Device::Cuda(n) if !available => Err(format!(
+            Device::Auto if provider && matches!(devices, Ok(n) if n > 0) => Ok(Device::Cuda(0)),
+            Device::Auto => {
+                if provider {
+                    let why = devices.map_or_else(|e| e, |_| "the NVIDIA driver reports no GPU".to_string());
+                    tracing::warn!("--device auto: running on the CPU: {why}");
+                }
+                Ok(Device::Cpu)
+            }
+            Device::Cuda(n) if !provider => Err(format!(
                 "--device cuda:{n}: the ONNX Runtime library {library} has no CUDA execution provider \
                  (it is the CPU build); use the GPU image, or point ORT_DYLIB_PATH at the library of \
-                 onnxruntime-gpu {} (docs/deploy.md), or choose --device cpu",
+                 onnxruntime-gpu {} (docs/deploy.md), {INSTEAD}",
                 super::runtime::ORT_VERSION
             )),
-            d => Ok(d),
+            Device::Cuda(n) => match devices {
+                Err(e) => Err(format!(
+                    "--device cuda:{n}: {e}; on a GPU machine install the NVIDIA driver, in a container run \
+                     the GPU image with the NVIDIA container toolkit (`docker run --gpus all`, or request \
+                     nvidia.com/gpu on Kubernetes), {INSTEAD}"
+                )),
+                Ok(count) if n >= count => Err(format!(
+                    "--device cuda:{n}: the NVIDIA driver reports {count} GPU(s){}; {INSTEAD}",
+                    if count > 0 { format!(", numbered 0 to {}", count - 1) } else { String::new() }
+                )),
+                Ok(_) => Ok(self),
+            },
+            Device::Cpu => Ok(self),
         }
     }
 }
@@ -90,6 +154,41 @@ mod tests {
         for bad in ["gpu", "cuda:", "cuda:-1", "cuda:x", "CUDA"] {
             let err = bad.parse::<Device>().unwrap_err();
             assert!(err.contains(&format!("`{bad}`")) && err.contains("cuda:N"), "{err}");
+        }
+    }
+
+    #[test]
+    fn devices_resolve_from_the_provider_and_the_driver() {
+        let lib = "/opt/lib/libonnxruntime.so.1.31.1";
+        let no_driver = || Err("the NVIDIA driver library libcuda.so.1 cannot be loaded (not found)".to_string());
+        // auto: CUDA only with the provider and a GPU.
+        assert_eq!(Device::Auto.resolve_with(lib, true, Ok(2)), Ok(Device::Cuda(0)));
+        for (provider, devices) in [(false, Ok(0)), (true, Ok(0)), (true, no_driver())] {
+            assert_eq!(Device::Auto.resolve_with(lib, provider, devices), Ok(Device::Cpu));
+        }
+        assert_eq!(Device::Cpu.resolve_with(lib, true, no_driver()), Ok(Device::Cpu));
+        assert_eq!(Device::Cuda(1).resolve_with(lib, true, Ok(2)), Ok(Device::Cuda(1)));
+        // cuda: each missing part named.
+        let err = Device::Cuda(0).resolve_with(lib, false, Ok(0)).unwrap_err();
+        assert!(err.contains(lib) && err.contains("CPU build") && err.contains("--device cpu"), "{err}");
+        let err = Device::Cuda(0).resolve_with(lib, true, no_driver()).unwrap_err();
+        assert!(
+            err.starts_with("--device cuda:0: the NVIDIA driver library libcuda.so.1") && err.contains("--gpus all"),
+            "{err}"
+        );
+        let err = Device::Cuda(2).resolve_with(lib, true, Ok(2)).unwrap_err();
+        assert!(err.contains("reports 2 GPU(s), numbered 0 to 1"), "{err}");
+        let err = Device::Cuda(0).resolve_with(lib, true, Ok(0)).unwrap_err();
+        assert!(err.contains("reports 0 GPU(s);"), "{err}");
+    }
+
+    #[test]
+    fn the_driver_probe_answers_without_a_driver() {
+        // Here (CI has no GPU) either answer is fine, but the probe must not crash, and
+        // without the library it must say which library is missing.
+        match cuda_devices() {
+            Ok(_) => {}
+            Err(e) => assert!(e.contains("libcuda.so.1") || e.contains("NVIDIA driver"), "{e}"),
         }
     }
 }

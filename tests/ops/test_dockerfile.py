@@ -9,6 +9,7 @@ import os
 import re
 import shlex
 import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -29,12 +30,29 @@ def instructions():
     return out
 
 
-def env_defaults() -> dict:
-    """ENV of the runtime stage (the last FROM)."""
-    env = {}
+def stages() -> dict:
+    """Instructions per stage, by name (`FROM x AS name`; unnamed stages by their index), in
+    order: the last one is what `docker build` makes without `--target`."""
+    out = {}
     for ins, rest in instructions():
         if ins == "FROM":
-            env = {}
+            words = rest.split()
+            name = words[2] if len(words) > 2 and words[1].upper() == "AS" else str(len(out))
+            out[name] = [(ins, rest)]
+        elif out:
+            out[list(out)[-1]].append((ins, rest))
+    return out
+
+
+def env_defaults(stage: str | None = None) -> dict:
+    """ENV of a stage (default: the last, the default image), with what it inherits from the
+    stage it is built FROM."""
+    all_stages = stages()
+    stage = stage or list(all_stages)[-1]
+    env = {}
+    for ins, rest in all_stages[stage]:
+        if ins == "FROM" and rest.split()[0] in all_stages:
+            env = env_defaults(rest.split()[0])
         if ins == "ENV":
             for tok in shlex.split(rest):
                 k, _, v = tok.partition("=")
@@ -132,6 +150,57 @@ def test_image_defaults_are_options_of_the_daemon():
     assert ports == {f"{port['MCDENOISE_HTTP']} {port['MCDENOISE_PROBE_HTTP']} {port['MCDENOISE_GRPC']}"}
 
 
+def test_the_gpu_image_runs_the_networks_on_cuda():
+    """`--target gpu`: the CUDA build of ONNX Runtime with its libraries where the loader
+    finds them, `--device cuda`, and otherwise the default image's settings."""
+    all_stages = stages()
+    assert list(all_stages)[-1] == "cpu", "the default image is the CPU one"
+    gpu, cpu = env_defaults("gpu"), env_defaults()
+    own = {k for k in gpu if k.startswith("MCDENOISE_") or k == "ORT_DYLIB_PATH"}
+    assert own <= serve_env_vars(), own - serve_env_vars()
+    assert set(gpu) - own == {"LD_LIBRARY_PATH", "NVIDIA_VISIBLE_DEVICES", "NVIDIA_DRIVER_CAPABILITIES"}
+    assert gpu["MCDENOISE_DEVICE"] == "cuda" and "MCDENOISE_DEVICE" not in cpu
+    lib_dir = os.path.dirname(gpu["ORT_DYLIB_PATH"])
+    assert gpu["LD_LIBRARY_PATH"] == lib_dir
+    assert {k: v for k, v in gpu.items() if k in cpu} == cpu, "the GPU image keeps the default image's settings"
+    # The library comes from install-ort's CUDA build, copied whole (provider and CUDA
+    # libraries beside the library); the CPU image copies the CPU build alone.
+    runs = [rest for ins, rest in all_stages[gpu_source()] if ins == "RUN"]
+    assert any("scripts/install-ort --cuda /out/lib" in r for r in runs), runs
+    assert ("COPY", f"--from={gpu_source()} /out/lib/ {lib_dir}/") in all_stages["gpu"]
+    assert ("COPY", f"--from=ort /out/lib/libonnxruntime.so.1.31.1 {lib_dir}/") in all_stages["cpu"]
+
+
+def gpu_source() -> str:
+    """The stage the GPU image copies its library directory from."""
+    (src,) = [re.search(r"--from=(\S+)", rest).group(1) for ins, rest in stages()["gpu"] if ins == "COPY" and "--from=" in rest]
+    return src
+
+
+def test_the_gpu_image_without_a_gpu_stops_at_start_naming_what_is_missing(tmp_path):
+    """The GPU image's environment on a machine without a GPU: `serve` exits before taking
+    jobs, with the reason. With the CPU library the CUDA provider is missing; with the CUDA
+    build (`scripts/install-ort --cuda $MCDENOISE_HOME/lib-cuda`, about 1.8 GB, not part of
+    the default setup) the NVIDIA driver is."""
+    from conftest import ort_library
+    env = env_defaults("gpu")
+    home = Path(os.environ.get("MCDENOISE_HOME", Path.home() / ".cache" / "mcdenoise"))
+    libraries = [(ort_library(), "has no CUDA execution provider (it is the CPU build)")]
+    cuda_build = home / "lib-cuda" / "libonnxruntime.so.1.31.1"
+    if (home / "lib-cuda" / "SHA256SUMS").is_file() and not Path("/dev/nvidiactl").exists():
+        libraries.append((str(cuda_build), "libcuda.so.1 cannot be loaded"))
+    for library, reason in libraries:
+        run_env = dict(os.environ, **{k: v for k, v in env.items() if k.startswith("MCDENOISE_")})
+        run_env.update(ORT_DYLIB_PATH=library, LD_LIBRARY_PATH=os.path.dirname(library),
+                       MCDENOISE_MODELS=str(ROOT / "models"), MCDENOISE_DATA_DIR=str(tmp_path / "data"),
+                       MCDENOISE_HTTP=f"127.0.0.1:{free_port()}", MCDENOISE_GRPC=f"127.0.0.1:{free_port()}",
+                       MCDENOISE_PROBE_HTTP=f"127.0.0.1:{free_port()}")
+        run_env.pop("MCDENOISE_AUTH_TOKENS", None)
+        r = subprocess.run([str(mcdenoise_bin()), "serve"], env=run_env, capture_output=True, text=True, timeout=60)
+        assert r.returncode != 0, library
+        assert "--device cuda:0" in r.stderr and reason in r.stderr, r.stderr[-2000:]
+
+
 def test_daemon_runs_on_the_image_defaults(tmp_path):
     """`mcdenoise serve` with the image's environment (paths mapped into a temporary
     directory laid out like the image) becomes ready, and the HEALTHCHECK passes."""
@@ -169,3 +238,30 @@ def test_daemon_runs_on_the_image_defaults(tmp_path):
 def test_healthcheck_fails_without_a_daemon():
     r = subprocess.run(["bash", str(ROOT / "scripts" / "healthcheck"), str(free_port())], capture_output=True, text=True)
     assert r.returncode == 1 and "/livez" in r.stderr
+
+
+def test_install_ort_pins_the_cuda_build():
+    """install-ort's GPU lists: each wheel pinned by version and sha256, the GPU build of the
+    same ONNX Runtime version as the CPU one. Where `scripts/install-ort --cuda` has run
+    into $MCDENOISE_HOME/lib-cuda, its files still match what it recorded, and the only
+    library the provider cannot find beside them is the NVIDIA driver's."""
+    text = (ROOT / "scripts" / "install-ort").read_text()
+    version = re.search(r"^ORT_VERSION=(\S+)$", text, re.M).group(1)
+    entries = re.findall(r'^  "(\S+)==(\S+) (\S+\.whl) ([0-9a-f]{64}) (.+)"$', text, re.M)
+    names = {e[0] for e in entries}
+    assert names == {"onnxruntime-gpu", "nvidia-cuda-runtime", "nvidia-cublas", "nvidia-curand", "nvidia-cudnn-cu13"}
+    assert ("onnxruntime-gpu", version) in {(e[0], e[1]) for e in entries}
+    for name, ver, wheel, _, members in entries:
+        assert wheel.startswith(name.replace("-", "_") + "-" + ver + "-"), wheel
+        assert members.split(), name
+    home = Path(os.environ.get("MCDENOISE_HOME", Path.home() / ".cache" / "mcdenoise"))
+    lib = home / "lib-cuda"
+    if not (lib / "SHA256SUMS").is_file():
+        pytest.skip(f"no CUDA build in {lib} (scripts/install-ort --cuda {lib}, 1.8 GB) to check further")
+    check = subprocess.run("grep -v '^#' SHA256SUMS | sha256sum --quiet -c -", shell=True, cwd=lib,
+                           capture_output=True, text=True)
+    assert check.returncode == 0, check.stdout + check.stderr
+    ldd = subprocess.run(["ldd", str(lib / "libonnxruntime_providers_cuda.so")], capture_output=True, text=True,
+                         env=dict(os.environ, LD_LIBRARY_PATH=str(lib)))
+    missing = {line.split()[0] for line in ldd.stdout.splitlines() if "not found" in line}
+    assert missing <= {"libcuda.so.1"}, missing

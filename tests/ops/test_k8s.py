@@ -247,6 +247,21 @@ def test_overlays_size_workers_to_the_cpu_request():
         assert one(render(o), "Service", "mcdenoise")["metadata"]["namespace"] == "mcdenoise"
 
 
+def test_only_the_gpu_overlay_runs_the_gpu_image_on_a_gpu():
+    """overlays/gpu: the image built with `--target gpu` (its tag ends in -gpu), one
+    nvidia.com/gpu per pod, `--device cuda`; every other overlay: the CPU image, no GPU."""
+    for o in KUSTOMIZATIONS:
+        c = daemon(render(o))["spec"]["template"]["spec"]["containers"][0]
+        env = {n: e.get("value") for n, e in env_of(c).items()}
+        limits = c["resources"].get("limits", {})
+        if o == "overlays/gpu":
+            assert c["image"].endswith("-gpu"), c["image"]
+            assert str(limits.get("nvidia.com/gpu")) == "1" and env.get("MCDENOISE_DEVICE") == "cuda"
+        else:
+            assert not c["image"].endswith("-gpu") and "nvidia.com/gpu" not in limits, o
+            assert env.get("MCDENOISE_DEVICE", "cpu") == "cpu", o
+
+
 def test_hpa_scales_the_daemon_on_the_adapter_metric(objects):
     hpa = one(objects, "HorizontalPodAutoscaler")
     workload = daemon(objects)
