@@ -79,6 +79,7 @@ fn result_exr_round_trip() {
         &[OutputLayer { prefix: "", planes: [&r, &g, &b] }, OutputLayer { prefix: "diffuse", planes: [&g, &b, &r] }],
     )
     .unwrap();
+    assert_eq!(common::read_exr(&bytes).layer_data[0].encoding.compression, exr::prelude::Compression::PIZ);
     let frame = Frame::reference_from_exr_bytes(&bytes, &Limits::default()).unwrap();
     assert_eq!(frame.plane(Buffer::Color, 0), &r[..]);
     assert_eq!(frame.plane(Buffer::Color, 2), &b[..]);

@@ -292,7 +292,15 @@ pub fn write_planes<'a>(
     Ok(out.into_inner())
 }
 
-/// Encodes `channels` as a single-part EXR (ZIP, lossless) with `header`: its data window
+/// How results are compressed: PIZ (wavelet, lossless), in scan-line blocks of 32. On a
+/// denoised 1280×720 float RGB result (2 threads) it wrote 7.56 MB in 0.122 s against ZIP's
+/// 9.33 MB in 0.147 s (the `exr` crate's ZIP of 16 lines; ZIP of single lines 10.67 MB,
+/// 0.104 s; RLE and no compression 11.07 MB, 0.02 s and 0.01 s): smaller and faster, and
+/// read by every OpenEXR reader.
+pub const RESULT_ENCODING: Encoding =
+    Encoding { compression: Compression::PIZ, blocks: Blocks::ScanLines, line_order: LineOrder::Increasing };
+
+/// Encodes `channels` as a single-part EXR ([`RESULT_ENCODING`], lossless) with `header`: its data window
 /// (origin from the header, `width`×`height`), display window, pixel aspect and attributes.
 /// The channels are moved into the encoder, not copied.
 pub(super) fn encode(
@@ -303,13 +311,13 @@ pub(super) fn encode(
 ) -> exr::error::Result<Vec<u8>> {
     let FrameHeader { image, layer } = header;
     let channels = AnyChannels::sort(smallvec::SmallVec::from_vec(channels));
-    let image = Image::new(image, Layer::new((width, height), layer, Encoding::SMALL_LOSSLESS, channels));
+    let image = Image::new(image, Layer::new((width, height), layer, RESULT_ENCODING, channels));
     let mut out = Cursor::new(Vec::new());
     image.write().to_buffered(&mut out)?;
     Ok(out.into_inner())
 }
 
-/// Encodes layers as a single-part float32 EXR (ZIP compression, lossless), in memory.
+/// Encodes layers as a single-part float32 EXR ([`RESULT_ENCODING`], lossless), in memory.
 pub fn write_exr(width: usize, height: usize, layers: &[OutputLayer<'_>]) -> exr::error::Result<Vec<u8>> {
     let mut named: Vec<(String, &[f32])> = Vec::new();
     for layer in layers {
@@ -318,5 +326,5 @@ pub fn write_exr(width: usize, height: usize, layers: &[OutputLayer<'_>]) -> exr
             named.push((name, layer.planes[c]));
         }
     }
-    write_planes(width, height, named.iter().map(|(n, d)| (n.as_str(), *d)), SampleType::F32, Encoding::SMALL_LOSSLESS)
+    write_planes(width, height, named.iter().map(|(n, d)| (n.as_str(), *d)), SampleType::F32, RESULT_ENCODING)
 }

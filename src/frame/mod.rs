@@ -9,7 +9,7 @@ pub mod presets;
 pub mod renderers;
 
 pub use carry::{Carried, Carry, FrameHeader, ALPHA};
-pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, SampleType};
+pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, SampleType, RESULT_ENCODING};
 pub use layout::{Buffer, BUFFER_COUNT};
 pub use presets::ChannelMaps;
 

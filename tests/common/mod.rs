@@ -300,6 +300,7 @@ pub fn check_carried(input: &[u8], result: &[u8], replaced: &[&str]) -> Image<La
     let (input, result) = (read_exr(input), read_exr(result));
     assert_eq!(result.layer_data.len(), 1, "a single-part result");
     let (inp, out) = (&input.layer_data[0], &result.layer_data[0]);
+    assert_eq!(out.encoding, mcdenoise::frame::RESULT_ENCODING, "results are PIZ-compressed scan lines");
     assert_eq!(out.attributes.layer_position, inp.attributes.layer_position, "data window origin");
     assert_eq!(out.size, inp.size, "data window size");
     assert_eq!(result.attributes.display_window, input.attributes.display_window);
