@@ -114,6 +114,8 @@ pub fn build_session(env: &ort::environment::Environment, path: &Path, placement
         // (edge tiles) they held 0.9 GB more at 4K for no speed (docs/results/speed-work.md).
         // The CPU arena stays: without it inference was 1.3-1.6x slower.
         .with_memory_pattern(false)?
+        // The environment's CPU arena, shared by every session (runtime.rs).
+        .with_env_allocators()?
         .with_optimization_level(GraphOptimizationLevel::All)?
         .with_intra_threads(threads)?
         .with_inter_threads(1)?

@@ -67,12 +67,39 @@ pub fn environment(explicit: Option<&Path>) -> Result<&'static Environment, Stri
             let builder =
                 ort::init_from(path).map_err(|e| format!("cannot load ONNX Runtime from {}: {e}", path.display()))?;
             let _ = LIBRARY.set(path.clone());
-            builder
+            let env = builder
                 .with_name("mcdenoise")
                 .with_telemetry(false)
                 .build()
-                .map_err(|e| format!("cannot create the ONNX Runtime environment: {e}"))
+                .map_err(|e| format!("cannot create the ONNX Runtime environment: {e}"))?;
+            register_shared_cpu_arena(&env)?;
+            Ok(env)
         })
         .as_ref()
         .map_err(Clone::clone)
+}
+
+/// Registers one CPU arena allocator with the environment, which every session then uses
+/// (`session.use_env_allocators`, [`super::model::build_session`]).
+///
+/// Each session otherwise keeps an arena of its own, grown to its largest region and never
+/// given back: a daemon that had run one 1280×720 frame through each of the four shipped
+/// variants held 3.26 GB, the sum of four arenas. Shared, the arena is as large as the
+/// largest working set of the sessions that run at the same time (one per worker),
+/// whichever variants they are. The arena's settings are ONNX Runtime's defaults, those of
+/// the per-session arenas before: growing by what is asked instead of powers of two gave a
+/// higher peak for a 1280×720 `mcdenoise run` (0.94 GB against 0.80 GB, three runs each).
+fn register_shared_cpu_arena(env: &Environment) -> Result<(), String> {
+    use ort::memory::{AllocationDevice, AllocatorType, MemoryInfo, MemoryType};
+    use ort::AsPointer;
+    let fail = |e: &dyn std::fmt::Display| format!("cannot register the shared CPU arena with ONNX Runtime: {e}");
+    let info =
+        MemoryInfo::new(AllocationDevice::CPU, 0, AllocatorType::Arena, MemoryType::Default).map_err(|e| fail(&e))?;
+    // SAFETY: both pointers come from live ort objects of this API version; a null arena
+    // configuration selects the defaults (documented in onnxruntime_c_api.h). The
+    // environment keeps the allocator; `info` is copied by the call.
+    unsafe {
+        let status = (ort::api().CreateAndRegisterAllocator)(env.ptr().cast_mut(), info.ptr(), std::ptr::null());
+        ort::Error::result_from_status(status).map_err(|e| fail(&e))
+    }
 }
