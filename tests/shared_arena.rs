@@ -13,7 +13,6 @@ mod common;
 use std::path::PathBuf;
 
 use mcdenoise::engine::{Engine, EngineConfig, Variant};
-use mcdenoise::frame::Frame;
 
 /// Resident set of this process in bytes (`VmRSS` of /proc/self/status).
 fn resident() -> u64 {

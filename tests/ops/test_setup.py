@@ -15,7 +15,7 @@ import threading
 import pytest
 
 from conftest import ROOT, ort_library
-from test_dockerfile import instructions
+from test_dockerfile import instructions, stages
 
 WHEEL = "onnxruntime-1.31.1-cp311-cp311-manylinux_2_28_x86_64.whl"
 TRAINING = re.compile(r"pip3? install|requirements|python3? -m venv|/venv/|apt-get|libllvm|setup-bpy|scripts/setup( (train|test))?\s*$")
@@ -158,13 +158,23 @@ def test_setup_serve_on_a_fresh_home_fetches_the_wheel_without_pip_or_a_venv(tmp
 
 
 def test_the_image_takes_only_what_serving_needs():
-    """The Dockerfile runs install-ort and build-release, never the training set-up; the
-    runtime stage holds the library, the binary, the healthcheck and the models."""
+    """The Dockerfile runs install-ort and build-release, never the training set-up; each
+    image (the default `cpu` and `gpu`: the `runtime` stage and their own) holds its
+    library, the binary, the healthcheck and the models."""
     ins = instructions()
     runs = " ".join(r for i, r in ins if i == "RUN")
     assert "scripts/install-ort" in runs and "scripts/build-release" in runs
     assert not re.search(r"scripts/setup|requirements|pip install|torch|mitsuba", runs, re.I), runs
-    last = max(n for n, (i, _) in enumerate(ins) if i == "FROM")
-    copied = [r.split()[-2] for i, r in ins[last:] if i == "COPY"]
-    assert copied == ["/out/lib/libonnxruntime.so.1.31.1", "/out/bin/mcdenoise", "scripts/healthcheck",
-                      "models/full", "models/nocov", "models/lin2020", "models/beauty", "models/MODEL_CARD.md"], copied
+    all_stages = stages()
+
+    def copied(stage: str) -> list:
+        """COPY sources of a stage, after those of the stage it is built FROM."""
+        base = all_stages[stage][0][1].split()[0]
+        own = [r.split()[-2] for i, r in all_stages[stage] if i == "COPY"]
+        return (copied(base) if base in all_stages else []) + own
+
+    serving = ["/out/bin/mcdenoise", "scripts/healthcheck", "models/full", "models/nocov", "models/lin2020",
+               "models/beauty", "models/MODEL_CARD.md"]
+    assert list(all_stages)[-1] == "cpu"
+    assert copied("cpu") == [*serving, "/out/lib/libonnxruntime.so.1.31.1"], copied("cpu")
+    assert copied("gpu") == [*serving, "/out/lib/"], copied("gpu")
