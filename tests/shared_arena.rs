@@ -5,8 +5,9 @@
 //!
 //! Measured on 1280×720 frames through the daemon, one job per variant in turn: 3.26 GB
 //! resident with an arena per session, 0.97 GB shared. Here on 512×384 frames, the growth of
-//! the resident set over the three variants after the first must stay below the first's
-//! own growth (with an arena per session each variant adds about as much as the first).
+//! the resident set over the next three jobs (`nocov`, `beauty`, `full` again) must stay
+//! below the first job's own growth (with an arena per session each new variant adds about
+//! as much as the first).
 
 mod common;
 
