@@ -496,3 +496,33 @@ async fn a_nats_restart_loses_no_accepted_job() {
         assert_eq!(job(&fleet.http(0), id).await, *first, "job {id} changed after it ended");
     }
 }
+
+/// Replicas of a new deployment start together: each creates the stream, buckets, object
+/// store and consumers that do not exist yet, and one replica's creation racing another's
+/// must not stop either (the server answers the loser with "already in use" or "subjects
+/// overlap").
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn replicas_starting_together_all_open_the_store() {
+    use mcdenoise::jobs::shared::Shared;
+    use mcdenoise::jobs::SharedConfig;
+    let dir = tempfile::tempdir().unwrap();
+    let nats = Nats::start(&dir.path().join("nats"));
+    for round in 0..30 {
+        let config = SharedConfig {
+            servers: nats.url(),
+            replicas: 1,
+            ack_wait: Duration::from_secs(5),
+            prefix: format!("race{round}"),
+        };
+        let opened = futures_util::future::join_all((0..6).map(|_| {
+            let config = config.clone();
+            tokio::spawn(async move { Shared::connect(&config, Duration::from_secs(10)).await.map(|_| ()) })
+        }))
+        .await;
+        for (i, r) in opened.into_iter().enumerate() {
+            if let Err(e) = r.unwrap() {
+                panic!("round {round}, replica {i}: {e}");
+            }
+        }
+    }
+}

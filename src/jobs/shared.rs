@@ -106,6 +106,31 @@ fn unavailable(context: &str, e: impl std::fmt::Display) -> Error {
     Error::Storage { full: false, message: format!("shared store (NATS JetStream): {context}: {e}") }
 }
 
+/// How often creating a stream, bucket, consumer or object store is tried.
+const CREATE_ATTEMPTS: u32 = 6;
+
+/// Gets or creates a stream, bucket, consumer or object store, trying again after a
+/// failure (50 ms, doubling). Replicas that start together race to create the same thing,
+/// and the server answers the losers with an error ("subjects overlap with an existing
+/// stream", "already in use") although it now exists: the next attempt finds it. The last
+/// failure is reported as `what`.
+async fn get_or_create<T, E, F>(what: &str, mut attempt: impl FnMut() -> F) -> Result<T>
+where
+    E: std::fmt::Display,
+    F: std::future::Future<Output = std::result::Result<T, E>>,
+{
+    let mut delay = Duration::from_millis(50);
+    for _ in 1..CREATE_ATTEMPTS {
+        match attempt().await {
+            Ok(made) => return Ok(made),
+            Err(e) => tracing::debug!(error = %e, "{what}; trying again"),
+        }
+        tokio::time::sleep(delay).await;
+        delay *= 2;
+    }
+    attempt().await.map_err(|e| unavailable(what, e))
+}
+
 /// The idempotency key's name in the keys bucket (KV keys allow only a few characters).
 pub(crate) fn key_name(scoped: &str) -> String {
     let digest = Sha256::digest(scoped.as_bytes());
@@ -146,36 +171,32 @@ impl Shared {
         let p = &config.prefix;
         let replicas = config.replicas;
         let stream_name = format!("{}_QUEUE", p.to_uppercase());
-        let stream = js
-            .get_or_create_stream(stream::Config {
-                name: stream_name.clone(),
-                subjects: vec![format!("{p}.queue.*")],
-                retention: stream::RetentionPolicy::WorkQueue,
-                storage: stream::StorageType::File,
-                num_replicas: replicas,
-                duplicate_window: Duration::from_secs(120),
-                ..Default::default()
-            })
-            .await
-            .map_err(|e| unavailable("cannot create the queue stream", e))?;
+        let queue = stream::Config {
+            name: stream_name.clone(),
+            subjects: vec![format!("{p}.queue.*")],
+            retention: stream::RetentionPolicy::WorkQueue,
+            storage: stream::StorageType::File,
+            num_replicas: replicas,
+            duplicate_window: Duration::from_secs(120),
+            ..Default::default()
+        };
+        let stream = get_or_create("cannot create the queue stream", || js.get_or_create_stream(queue.clone())).await?;
         let mut consumers = Vec::new();
         for priority in Priority::ALL {
             let name = format!("{}_{}", p.to_uppercase(), priority.name());
-            let consumer = stream
-                .get_or_create_consumer(
-                    &name,
-                    pull::Config {
-                        durable_name: Some(name.clone()),
-                        filter_subject: format!("{p}.queue.{}", priority.name()),
-                        ack_policy: jetstream::consumer::AckPolicy::Explicit,
-                        ack_wait: config.ack_wait,
-                        max_deliver: -1,
-                        num_replicas: replicas,
-                        ..Default::default()
-                    },
-                )
-                .await
-                .map_err(|e| unavailable(&format!("cannot create the consumer {name}"), e))?;
+            let config = pull::Config {
+                durable_name: Some(name.clone()),
+                filter_subject: format!("{p}.queue.{}", priority.name()),
+                ack_policy: jetstream::consumer::AckPolicy::Explicit,
+                ack_wait: config.ack_wait,
+                max_deliver: -1,
+                num_replicas: replicas,
+                ..Default::default()
+            };
+            let consumer = get_or_create(&format!("cannot create the consumer {name}"), || {
+                stream.get_or_create_consumer(&name, config.clone())
+            })
+            .await?;
             consumers.push((priority, consumer));
         }
         // The buckets' streams are made here with the settings a key-value bucket has
@@ -184,7 +205,7 @@ impl Shared {
         let open_kv = |bucket: String, max_age: Duration| {
             let js = js.clone();
             async move {
-                js.get_or_create_stream(stream::Config {
+                let config = stream::Config {
                     name: format!("KV_{bucket}"),
                     subjects: vec![format!("$KV.{bucket}.>")],
                     max_messages_per_subject: 1,
@@ -196,9 +217,11 @@ impl Shared {
                     allow_direct: true,
                     discard: stream::DiscardPolicy::New,
                     ..Default::default()
+                };
+                get_or_create(&format!("cannot create the bucket {bucket}"), || {
+                    js.get_or_create_stream(config.clone())
                 })
-                .await
-                .map_err(|e| unavailable(&format!("cannot create the bucket {bucket}"), e))?;
+                .await?;
                 js.get_key_value(&bucket).await.map_err(|e| unavailable(&format!("cannot open the bucket {bucket}"), e))
             }
         };
@@ -206,18 +229,21 @@ impl Shared {
         let keys = open_kv(format!("{p}_keys"), Duration::ZERO).await?;
         let leases = open_kv(format!("{p}_leases"), LEASE).await?;
         let files_name = format!("{p}_files");
-        let files = match js.get_object_store(&files_name).await {
-            Ok(store) => store,
-            Err(_) => js
-                .create_object_store(object_store::Config {
-                    bucket: files_name.clone(),
-                    storage: stream::StorageType::File,
-                    num_replicas: replicas,
-                    ..Default::default()
-                })
-                .await
-                .map_err(|e| unavailable(&format!("cannot create the object store {files_name}"), e))?,
-        };
+        let files = get_or_create(&format!("cannot create the object store {files_name}"), || async {
+            match js.get_object_store(&files_name).await {
+                Ok(store) => Ok(store),
+                Err(_) => js
+                    .create_object_store(object_store::Config {
+                        bucket: files_name.clone(),
+                        storage: stream::StorageType::File,
+                        num_replicas: replicas,
+                        ..Default::default()
+                    })
+                    .await
+                    .map_err(|e| e.to_string()),
+            }
+        })
+        .await?;
         let host = std::env::var("HOSTNAME")
             .ok()
             .or_else(|| std::fs::read_to_string("/etc/hostname").ok())
