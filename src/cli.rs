@@ -11,7 +11,7 @@ use serde_json::json;
 
 use crate::config::FireflyArgs;
 use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
-use crate::frame::{Buffer, ChannelMaps, Frame, Limits};
+use crate::frame::{Buffer, ChannelMaps, Frame, Limits, Plane, PlaneRef};
 use crate::jobs::Layer;
 use crate::pipeline::{self, Failure, Input};
 use crate::quality::Metrics;
@@ -86,6 +86,10 @@ pub struct RunArgs {
     /// Tile side for contract-v2 (multi-scale) models, whose halo is wider (0: whole frame).
     #[arg(long, env = "MCDENOISE_TILE_V2", default_value_t = engine::DEFAULT_TILE_V2)]
     pub tile_v2: usize,
+    /// Largest region (a tile with its halo) the networks run on, in pixels: larger frames
+    /// are cut into more, smaller tiles, which bounds the working memory.
+    #[arg(long, env = "MCDENOISE_REGION_PIXELS", default_value_t = engine::DEFAULT_REGION_PIXELS)]
+    pub region_pixels: usize,
     /// Threads for inference and processing (default: all cores).
     #[arg(long, env = "MCDENOISE_THREADS")]
     pub threads: Option<usize>,
@@ -178,6 +182,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     let mut config = EngineConfig::new(&args.models);
     config.tile = args.tile;
     config.tile_v2 = args.tile_v2;
+    config.region_pixels = args.region_pixels;
     if let Some(t) = args.threads {
         config.threads = t;
     }
@@ -313,7 +318,7 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
         Ok(Array3::from_shape_vec((c, h, w), v)?)
     };
     let stack = |planes: [&[f32]; 3]| -> Vec<f32> { planes.concat() };
-    let albedo = frame.planes(Buffer::Albedo);
+    let albedo: Vec<Plane> = frame.planes(Buffer::Albedo).iter().map(PlaneRef::to_vec).collect();
     let noisy = frame.diffuse_plus_specular();
 
     let file = crate::atomic::File::create(&args.output)
@@ -331,11 +336,11 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
         }
         let d_target: Vec<f32> = (0..3)
             .flat_map(|c| {
-                r.plane(Buffer::Diffuse, c).iter().zip(&albedo[c]).map(|(d, a)| d / (a + EPS)).collect::<Vec<_>>()
+                r.f32_plane(Buffer::Diffuse, c).iter().zip(&albedo[c]).map(|(d, a)| d / (a + EPS)).collect::<Vec<_>>()
             })
             .collect();
         let s_target: Vec<f32> = (0..3)
-            .flat_map(|c| r.plane(Buffer::Specular, c).iter().map(|s| s.max(0.0).ln_1p()).collect::<Vec<_>>())
+            .flat_map(|c| r.f32_plane(Buffer::Specular, c).iter().map(|s| s.max(0.0).ln_1p()).collect::<Vec<_>>())
             .collect();
         let rc = r.color();
         npz.add_array("diffuse_target", &shaped(d_target)?)?;

@@ -163,6 +163,11 @@ pub struct ServeArgs {
     /// Tile side for contract-v2 (multi-scale) models, whose halo is wider (0: whole frame).
     #[arg(long, env = "MCDENOISE_TILE_V2", default_value_t = crate::engine::DEFAULT_TILE_V2, help_heading = "Models and workers")]
     pub tile_v2: usize,
+    /// Largest region (a tile with its halo) the networks run on, in pixels: larger frames
+    /// are cut into more, smaller tiles. Bounds a worker's working memory (about 1.3 GB per
+    /// million pixels with the default network) at some speed on frames above 1080p.
+    #[arg(long, env = "MCDENOISE_REGION_PIXELS", default_value_t = crate::engine::DEFAULT_REGION_PIXELS, help_heading = "Models and workers")]
+    pub region_pixels: usize,
     /// Default firefly handling of jobs that do not set `fireflies` / `firefly_strength`.
     #[command(flatten)]
     pub fireflies: FireflyArgs,
@@ -412,6 +417,7 @@ impl ServeArgs {
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,
             "tile_v2": self.tile_v2,
+            "region_pixels": self.region_pixels,
             "fireflies": self.fireflies.settings(),
             "queue_capacity": self.queue_capacity,
             "job_deadline": humantime::format_duration(self.job_deadline).to_string(),
@@ -606,8 +612,8 @@ mod tests {
         let d = parse_serve_args(["serve"]).unwrap();
         assert_eq!((a.http, a.grpc, a.queue_capacity, a.result_ttl), (d.http, d.grpc, d.queue_capacity, d.result_ttl));
         assert_eq!(
-            (a.tile, a.tile_v2, a.max_pixels, a.max_body_bytes),
-            (d.tile, d.tile_v2, d.max_pixels, d.max_body_bytes)
+            (a.tile, a.tile_v2, a.region_pixels, a.max_pixels, a.max_body_bytes),
+            (d.tile, d.tile_v2, d.region_pixels, d.max_pixels, d.max_body_bytes)
         );
         assert_eq!(a.fireflies.settings(), d.fireflies.settings());
         assert_eq!(a.workers, Some(1));

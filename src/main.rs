@@ -34,7 +34,26 @@ fn init_cli_logging() {
         .init();
 }
 
+/// Allocations of 1 MB and more (frame planes, a region's tensors, ONNX Runtime's arena
+/// extensions) are mapped and unmapped one by one, so that what a frame frees goes back to
+/// the system. glibc's default threshold starts at 128 KB and rises to the largest block
+/// freed (up to 32 MB), after which such blocks come from heaps that several threads
+/// fragment: `mcdenoise run` on one 3840×2160 frame peaked anywhere between 1.37 and
+/// 1.53 GB from run to run, and at 1.43 GB each time with the fixed threshold, for the
+/// same time (docs/results/speed-work.md).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn tune_allocator() {
+    // SAFETY: mallopt only sets a parameter of the allocator; called before any thread starts.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn tune_allocator() {}
+
 fn main() -> std::process::ExitCode {
+    tune_allocator();
     let result = match Cli::parse().command {
         Command::Run(args) => {
             init_cli_logging();

@@ -11,7 +11,8 @@ use mcdenoise::engine::{
 };
 use mcdenoise::frame::{layout::REQUIRED, Buffer, Frame};
 
-/// A 3×2 frame with hand-picked values.
+/// A 3×2 frame with hand-picked values; those of the buffers kept as f16 (every one but the
+/// colors and the depth) are exact in f16, so that the closed forms below hold to f32.
 fn hand_frame() -> Frame {
     let p = |v: [f32; 6]| v.to_vec();
     let planes = vec![
@@ -28,15 +29,15 @@ fn hand_frame() -> Frame {
         ("normal.G".into(), p([0.0; 6])),
         ("normal.B".into(), p([1.0; 6])),
         ("depth.Z".into(), p([1.0, 2.0, 4.0, 8.0, 0.0, 2.0])),
-        ("covariance".into(), p([0.0, 0.1, 0.2, 0.4, 0.1, 0.0])),
-        ("diffuseVariance.R".into(), p([0.1; 6])),
-        ("diffuseVariance.G".into(), p([0.2; 6])),
-        ("diffuseVariance.B".into(), p([0.3; 6])),
-        ("specularVariance.Z".into(), p([0.4; 6])),
-        ("albedoVariance.Z".into(), p([0.01; 6])),
-        ("normalVariance.Z".into(), p([0.02; 6])),
-        ("depthVariance.Z".into(), p([1.6; 6])),
-        ("covarianceVariance.Z".into(), p([0.016; 6])),
+        ("covariance".into(), p([0.0, 0.125, 0.25, 0.5, 0.125, 0.0])),
+        ("diffuseVariance.R".into(), p([0.125; 6])),
+        ("diffuseVariance.G".into(), p([0.25; 6])),
+        ("diffuseVariance.B".into(), p([0.375; 6])),
+        ("specularVariance.Z".into(), p([0.5; 6])),
+        ("albedoVariance.Z".into(), p([0.0078125; 6])),
+        ("normalVariance.Z".into(), p([0.015625; 6])),
+        ("depthVariance.Z".into(), p([1.5; 6])),
+        ("covarianceVariance.Z".into(), p([0.03125; 6])),
     ];
     Frame::from_planes(3, 2, planes, REQUIRED, &Default::default()).unwrap()
 }
@@ -49,7 +50,7 @@ fn close(a: f32, b: f32) -> bool {
 fn preprocessing_matches_closed_form() {
     let frame = hand_frame();
     let stats = FrameStats::of(&frame);
-    assert_eq!(stats, FrameStats { depth_max: 8.0, covariance_max: 0.4 });
+    assert_eq!(stats, FrameStats { depth_max: 8.0, covariance_max: 0.5 });
     let t = preprocess(&frame, &stats, FeatureSet::Full, Rect { x: 0, y: 0, w: 3, h: 2 });
     let n = 6;
     let ch = |v: &[f32], c: usize| v[c * n..(c + 1) * n].to_vec();
@@ -62,14 +63,14 @@ fn preprocessing_matches_closed_form() {
     let gy = ch(&t.diffuse, 7);
     assert!(close(gy[0], d[3] - d[0]) && gy[3] == 0.0 && gy[5] == 0.0);
     let var = ch(&t.diffuse, 3);
-    let want = luminance(0.1 / (0.5 + EPS).powi(2), 0.2 / (1.0 + EPS).powi(2), 0.3 / EPS.powi(2));
+    let want = luminance(0.125 / (0.5 + EPS).powi(2), 0.25 / (1.0 + EPS).powi(2), 0.375 / EPS.powi(2));
     assert!(close(var[0], want), "{} vs {want}", var[0]);
 
     // Specular ln(1 + max(s, 0)) and variance σ² / (1 + s)² per channel, then luminance.
     let s = ch(&t.specular, 0);
     assert!(close(s[1], 2f32.ln()) && close(s[2], 4f32.ln()) && s[3] == 0.0);
     let svar = ch(&t.specular, 3);
-    assert!(close(svar[2], luminance(0.4 / 16.0, 0.4, 0.4)), "{}", svar[2]);
+    assert!(close(svar[2], luminance(0.5 / 16.0, 0.5, 0.5)), "{}", svar[2]);
 
     // Features: depth and covariance divided by the frame's maximum; variances by its square.
     assert_eq!(t.features.len(), 28 * n);
@@ -77,15 +78,15 @@ fn preprocessing_matches_closed_form() {
     assert_eq!(f(0)[1], 0.5); // normal.R
     assert_eq!(f(3)[0], 0.5); // albedo.R
     assert!(close(f(6)[2], 0.5) && close(f(6)[3], 1.0)); // depth / 8
-    assert!(close(f(7)[2], 0.5)); // covariance / 0.4
-    assert!(close(f(8)[0], 0.02)); // normalVariance
-    assert!(close(f(9)[0], 0.01)); // albedoVariance
-    assert!(close(f(10)[0], 1.6 / 64.0)); // depthVariance / 8²
-    assert!(close(f(11)[0], 0.016 / 0.16)); // covarianceVariance / 0.4²
+    assert!(close(f(7)[2], 0.5)); // covariance / 0.5
+    assert!(close(f(8)[0], 0.015625)); // normalVariance
+    assert!(close(f(9)[0], 0.0078125)); // albedoVariance
+    assert!(close(f(10)[0], 1.5 / 64.0)); // depthVariance / 8²
+    assert!(close(f(11)[0], 0.03125 / 0.25)); // covarianceVariance / 0.5²
     assert!(close(f(12)[0], 0.5)); // gx normal.R
     assert!(close(f(18)[0], 0.125)); // gx depth
     assert!(close(f(26)[0], 7.0 / 8.0)); // gy depth: (8 − 1) / 8
-    assert!(close(f(27)[1], 0.0)); // gy covariance: 0.1 − 0.1
+    assert!(close(f(27)[1], 0.0)); // gy covariance: 0.125 − 0.125
 
     // The nocov variant is the full one without the covariance channels.
     let nocov = preprocess(&frame, &stats, FeatureSet::Nocov, Rect { x: 0, y: 0, w: 3, h: 2 });

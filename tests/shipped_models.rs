@@ -86,7 +86,8 @@ fn shipped_models_reconstruct_alike_in_the_graph() {
 fn a_beauty_only_file_is_denoised_by_the_beauty_variant() {
     let frame = Frame::from_exr_bytes(&fixture("cornell-spp8.exr"), &Limits::default()).unwrap();
     let beauty = frame.diffuse_plus_specular();
-    let (albedo, normal) = (frame.planes(Buffer::Albedo), frame.planes(Buffer::Normal));
+    let f32_planes = |b: Buffer| frame.planes(b).iter().map(|p| p.to_vec()).collect::<Vec<_>>();
+    let (albedo, normal) = (f32_planes(Buffer::Albedo), f32_planes(Buffer::Normal));
     let mut planes: Vec<(String, &[f32])> = Vec::new();
     for (c, name) in ["R", "G", "B"].iter().enumerate() {
         planes.push((name.to_string(), &beauty[c]));

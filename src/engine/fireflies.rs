@@ -49,7 +49,7 @@
 use rayon::prelude::*;
 
 use super::preprocess::{luminance, EPS};
-use crate::frame::Plane;
+use crate::frame::{Plane, PlaneRef};
 
 /// Whether outliers are handled.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
@@ -126,14 +126,14 @@ impl Fireflies {
     }
 }
 
-/// One color buffer to examine: its three planes, its variance planes (one or three; `None`
-/// when the frame has none, or only zeros filled in for a missing buffer) and, for a
-/// buffer the network sees divided by albedo, the albedo.
+/// One color buffer to examine: its three planes, its variance planes (a mono variance
+/// stands in all three; `None` when the frame has none, or only zeros filled in for a
+/// missing buffer) and, for a buffer the network sees divided by albedo, the albedo.
 #[derive(Clone, Copy)]
 pub struct Layer<'a> {
     pub color: [&'a [f32]; 3],
-    pub variance: Option<&'a [Plane]>,
-    pub albedo: Option<[&'a [f32]; 3]>,
+    pub variance: Option<[PlaneRef<'a>; 3]>,
+    pub albedo: Option<[PlaneRef<'a>; 3]>,
 }
 
 /// The change to one outlier pixel.
@@ -184,7 +184,7 @@ pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<
             let c = |k: usize| {
                 let v = layer.color[k][i].max(0.0);
                 match layer.albedo {
-                    Some(a) => v / (a[k][i].max(0.0) + EPS),
+                    Some(a) => v / (a[k].get(i).max(0.0) + EPS),
                     None => v,
                 }
             };
@@ -302,11 +302,11 @@ fn isolated(g: &[f32], w: usize, h: usize, x: usize, y: usize, delta: f32) -> bo
 
 /// Luminance of the variance of pixel `i`, in the same domain as `g` (divided by
 /// `(albedo + ε)²` where the color is divided by `albedo + ε`).
-fn variance_luminance(layer: Layer<'_>, var: &[Plane], i: usize) -> f32 {
+fn variance_luminance(layer: Layer<'_>, var: [PlaneRef<'_>; 3], i: usize) -> f32 {
     let v = |k: usize| {
-        let v = finite(var[k.min(var.len() - 1)][i].max(0.0));
+        let v = finite(var[k].get(i).max(0.0));
         match layer.albedo {
-            Some(a) => v / (a[k][i].max(0.0) + EPS).powi(2),
+            Some(a) => v / (a[k].get(i).max(0.0) + EPS).powi(2),
             None => v,
         }
     };
@@ -365,7 +365,8 @@ mod tests {
     }
 
     fn layer<'a>(c: &'a [Plane; 3], var: Option<&'a [Plane]>) -> Layer<'a> {
-        Layer { color: [&c[0], &c[1], &c[2]], variance: var, albedo: None }
+        let variance = var.map(|v| std::array::from_fn(|k| PlaneRef::F32(&v[k.min(v.len() - 1)])));
+        Layer { color: [&c[0], &c[1], &c[2]], variance, albedo: None }
     }
 
     fn rgb(w: usize, h: usize, level: f32) -> [Plane; 3] {
@@ -486,7 +487,7 @@ mod tests {
         let albedo: Plane = (0..w * h).map(|i| if i % w % 4 == 0 && i / w % 4 == 0 { 0.9 } else { 0.02 }).collect();
         let light = field(w, h, 1.0, 9);
         let c: [Plane; 3] = std::array::from_fn(|_| light.iter().zip(&albedo).map(|(l, a)| l * a).collect());
-        let l = Layer { color: [&c[0], &c[1], &c[2]], variance: None, albedo: Some([&albedo, &albedo, &albedo]) };
+        let l = Layer { color: [&c[0], &c[1], &c[2]], variance: None, albedo: Some([PlaneRef::F32(&albedo); 3]) };
         assert!(detect(l, w, h, Fireflies::default()).is_empty());
         // Without the albedo the bright texels look isolated.
         assert!(!detect(layer(&c, None), w, h, Fireflies::default()).is_empty());

@@ -32,7 +32,7 @@ pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
 pub use preprocess::{FrameStats, Rect, EPS};
 
-use crate::frame::{Buffer, Frame, Plane};
+use crate::frame::{Buffer, Frame, Plane, PlaneRef};
 
 /// Why the engine could not denoise.
 #[derive(Debug, thiserror::Error)]
@@ -62,6 +62,10 @@ pub struct EngineConfig {
     /// The same for contract-v2 models (rounded up to the model's size multiple): their
     /// halo is wider, so their tiles are larger.
     pub tile_v2: usize,
+    /// Largest region (a core with its halo) the networks run on, in pixels: the frame is
+    /// cut into more, smaller cores where a region would be larger. It bounds ONNX
+    /// Runtime's working memory, which follows the region's pixels ([`DEFAULT_REGION_PIXELS`]).
+    pub region_pixels: usize,
     /// Threads for ONNX Runtime and for pre/post-processing.
     pub threads: usize,
     /// Explicit path of libonnxruntime; otherwise it is searched for (see [`runtime`]).
@@ -79,6 +83,7 @@ impl EngineConfig {
             models_dir: models_dir.into(),
             tile: 256,
             tile_v2: DEFAULT_TILE_V2,
+            region_pixels: DEFAULT_REGION_PIXELS,
             threads: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             ort_library: None,
             device: Device::Cpu,
@@ -92,6 +97,15 @@ impl EngineConfig {
 /// tiles, 7.1–7.3 s and 0.79–0.80 GB peak; 512 8.1 s and 0.76 GB; 1024 7.2 s and 0.99 GB;
 /// the whole frame 4.8–8.9 s and 1.07–1.27 GB (docs/model-contract.md).
 pub const DEFAULT_TILE_V2: usize = 768;
+
+/// Default [`EngineConfig::region_pixels`]: 896 × 768. Measured with the default msnet
+/// (`mcdenoise run`, 2 threads, a 3840×2160 float frame of 20 planes): peak RSS grows by
+/// about 1.3 GB per million region pixels (ONNX Runtime's activations and outputs, the
+/// region's inputs); 768² cores (regions of 1024 × 976 inside a 4K frame) peaked at
+/// 1.92 GB, 512² (768²) at 1.40 GB but 33 % slower. Frames up to 1920×1080 never need
+/// more than 768² cores in a balanced grid (their regions stay under 0.62 M pixels), so
+/// the bound applies to larger frames only (docs/results/speed-work.md).
+pub const DEFAULT_REGION_PIXELS: usize = 896 * 768;
 
 /// Time spent per stage.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
@@ -151,6 +165,7 @@ pub struct Engine {
     models: Vec<VariantModel>,
     tile: usize,
     tile_v2: usize,
+    region_pixels: usize,
     pool: rayon::ThreadPool,
     device: Device,
 }
@@ -169,7 +184,14 @@ impl Engine {
             .thread_name(|i| format!("mcdenoise-engine-{i}"))
             .build()
             .map_err(|e| EngineError::Runtime(format!("cannot start the engine's thread pool: {e}")))?;
-        Ok(Engine { models, tile: config.tile, tile_v2: config.tile_v2, pool, device })
+        Ok(Engine {
+            models,
+            tile: config.tile,
+            tile_v2: config.tile_v2,
+            region_pixels: config.region_pixels,
+            pool,
+            device,
+        })
     }
 
     /// Where the networks run: `cpu` or `cuda:N` (`auto` resolved at load).
@@ -261,9 +283,9 @@ impl Engine {
         let frame = beauty.as_ref().unwrap_or(frame);
         timings.fireflies = t.elapsed();
 
-        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;
+        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], self.region_pixels, variant, frame)?;
         let stats = FrameStats::of(frame);
-        let tiles = tile_grid(frame.width, frame.height, plan.tile);
+        let tiles = plan.cores(frame.width, frame.height);
         let (w, h) = (frame.width, frame.height);
         // The filtered diffuse and specular, turned into the outputs in place below.
         let mut filtered: [[Plane; 3]; 2] = std::array::from_fn(|_| std::array::from_fn(|_| vec![0f32; w * h]));
@@ -284,9 +306,16 @@ impl Engine {
         let t = Instant::now();
         let albedo = frame.planes(Buffer::Albedo);
         let [mut diffuse, mut specular] = filtered;
-        for (plane, albedo) in diffuse.iter_mut().zip(albedo) {
-            for (d, a) in plane.iter_mut().zip(albedo) {
-                *d = saturate(*d * (a.max(0.0) + EPS));
+        // The albedo is read a chunk at a time (it may be kept as f16).
+        const CHUNK: usize = 4096;
+        let mut a = vec![0f32; CHUNK];
+        for (plane, albedo) in diffuse.iter_mut().zip(&albedo) {
+            for (k, chunk) in plane.chunks_mut(CHUNK).enumerate() {
+                let a = &mut a[..chunk.len()];
+                albedo.read(k * CHUNK, a);
+                for (d, a) in chunk.iter_mut().zip(a.iter()) {
+                    *d = saturate(*d * (a.max(0.0) + EPS));
+                }
             }
         }
         for s in specular.iter_mut().flatten() {
@@ -312,10 +341,10 @@ impl Engine {
     /// `frame` (preprocessing done beforehand and not counted, logits not consumed): the
     /// inference floor the speed benchmark compares the engine with.
     pub fn inference_only(&mut self, frame: &Frame, variant: Variant) -> Result<Duration, EngineError> {
-        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], variant, frame)?;
+        let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], self.region_pixels, variant, frame)?;
         let stats = FrameStats::of(frame);
         let mut timings = StageTimings::default();
-        for core in tile_grid(frame.width, frame.height, plan.tile) {
+        for core in plan.cores(frame.width, frame.height) {
             let region = expand(core, plan.halo, frame.width, frame.height);
             run_region(model, &self.pool, frame, &stats, region, core, plan.multiple, &mut timings, false)?;
         }
@@ -387,13 +416,13 @@ pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, F
         return (None, report);
     }
     let (w, h) = (frame.width, frame.height);
-    let albedo = frame.planes(Buffer::Albedo);
-    let albedo = [&albedo[0][..], &albedo[1][..], &albedo[2][..]];
-    let layer = |color: Buffer, variance: Buffer, albedo: Option<[&'_ [f32]; 3]>| -> Vec<fireflies::Fix> {
-        let c = frame.planes(color);
+    let rgb = |buffer: Buffer| -> [PlaneRef<'_>; 3] { std::array::from_fn(|c| frame.plane(buffer, c)) };
+    let albedo = rgb(Buffer::Albedo);
+    let layer = |color: Buffer, variance: Buffer, albedo: Option<[PlaneRef<'_>; 3]>| -> Vec<fireflies::Fix> {
+        let c = frame.f32_planes(color);
         // Variances filled in as zeros for a missing buffer say nothing.
         let known = frame.has(variance) && !frame.missing_variances.iter().any(|m| m == variance.name());
-        let layer = Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| frame.planes(variance)), albedo };
+        let layer = Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| rgb(variance)), albedo };
         fireflies::detect(layer, w, h, settings)
     };
     let diffuse = layer(Buffer::Diffuse, Buffer::DiffuseVariance, Some(albedo));
@@ -410,10 +439,12 @@ pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, F
 }
 
 /// The loaded model of `variant`, checked against the frame's channels, and its tiling for
-/// tiles of side `tiles[0]` (contract v1) or `tiles[1]` (contract v2).
+/// tiles of side `tiles[0]` (contract v1) or `tiles[1]` (contract v2), regions of at most
+/// `region_pixels`.
 fn plan<'a>(
     models: &'a mut [VariantModel],
     tiles: [usize; 2],
+    region_pixels: usize,
     variant: Variant,
     frame: &Frame,
 ) -> Result<(&'a mut VariantModel, Tiling), EngineError> {
@@ -434,16 +465,72 @@ fn plan<'a>(
         tile: tile.next_multiple_of(multiple),
         halo: model.receptive_radius().next_multiple_of(multiple),
         multiple,
+        region_pixels,
     };
     Ok((model, plan))
 }
 
-/// How a frame is cut for one model: the core side, the context around each core, and what
-/// both (and each region's sides) must be multiples of.
-struct Tiling {
-    tile: usize,
-    halo: usize,
-    multiple: usize,
+/// How a frame is cut for one model: the largest core side, the context around each core,
+/// what both (and each region's sides) must be multiples of, and the largest region.
+#[derive(Clone, Copy, Debug)]
+pub struct Tiling {
+    /// Largest core side (0: the whole frame as one core).
+    pub tile: usize,
+    pub halo: usize,
+    pub multiple: usize,
+    /// Largest region (core and halo, inside the frame) in pixels.
+    pub region_pixels: usize,
+}
+
+impl Tiling {
+    /// Square cores of side `tile` without halo: what a job's tile count is estimated from
+    /// before its model is known.
+    pub fn plain(tile: usize) -> Tiling {
+        Tiling { tile, halo: 0, multiple: 1, region_pixels: usize::MAX }
+    }
+
+    /// Cores covering a `w`×`h` frame, row-major: a balanced grid of `nx` × `ny` cores of
+    /// one size (the last column and row smaller), sides multiples of `multiple`; `nx` and
+    /// `ny` are the fewest that keep every side within `tile` and every region within
+    /// `region_pixels` (cores are split further, the longer side first, until the largest
+    /// region fits or cores are down to `multiple`). One core for `tile == 0`.
+    ///
+    /// Balanced rather than `tile`-sided: a 1280-wide frame is two cores of 640, not 768
+    /// and 512, so the largest region (what sets the peak memory) is smaller for the same
+    /// halo work.
+    pub fn cores(&self, w: usize, h: usize) -> Vec<Rect> {
+        if self.tile == 0 {
+            return vec![Rect { x: 0, y: 0, w, h }];
+        }
+        let m = self.multiple.max(1);
+        let side = |len: usize, n: usize| len.div_ceil(n).next_multiple_of(m).min(len.next_multiple_of(m));
+        // The largest extent of a region along a side of `len` cut into cores of `c`: an
+        // inner core has a halo on both sides, the two outer ones on one.
+        let extent = |len: usize, c: usize| match len.div_ceil(c) {
+            1 => len,
+            2 => (c + self.halo).min(len),
+            _ => (c + 2 * self.halo).min(len),
+        };
+        let (mut nx, mut ny) = (w.div_ceil(self.tile), h.div_ceil(self.tile));
+        loop {
+            let (cw, ch) = (side(w, nx), side(h, ny));
+            let (rw, rh) = (extent(w, cw), extent(h, ch));
+            if rw * rh <= self.region_pixels || (cw <= m && ch <= m) {
+                let mut out = Vec::new();
+                for y in (0..h).step_by(ch) {
+                    for x in (0..w).step_by(cw) {
+                        out.push(Rect { x, y, w: cw.min(w - x), h: ch.min(h - y) });
+                    }
+                }
+                return out;
+            }
+            if (cw >= ch && cw > m) || ch <= m {
+                nx += 1;
+            } else {
+                ny += 1;
+            }
+        }
+    }
 }
 
 /// Preprocesses `region` and runs `model` on it; returns the filtered diffuse and specular
@@ -578,18 +665,10 @@ fn pad_planes(src: Vec<f32>, w: usize, h: usize, pw: usize, ph: usize) -> Vec<f3
     dst
 }
 
-/// Cores of side `tile` covering a `w`×`h` frame, row-major; one core for `tile == 0`.
+/// Cores of at most `tile` a side covering a `w`×`h` frame in a balanced grid, row-major
+/// ([`Tiling::cores`] without halo); one core for `tile == 0`.
 pub fn tile_grid(w: usize, h: usize, tile: usize) -> Vec<Rect> {
-    if tile == 0 {
-        return vec![Rect { x: 0, y: 0, w, h }];
-    }
-    let mut out = Vec::new();
-    for y in (0..h).step_by(tile) {
-        for x in (0..w).step_by(tile) {
-            out.push(Rect { x, y, w: tile.min(w - x), h: tile.min(h - y) });
-        }
-    }
-    out
+    Tiling::plain(tile).cores(w, h)
 }
 
 /// `core` grown by `halo` on every side, clamped to the frame.
@@ -640,4 +719,69 @@ pub fn synthetic_frame(w: usize, h: usize, with_covariance: bool) -> Frame {
     let maps = crate::frame::ChannelMaps::default();
     Frame::from_planes(w, h, synthetic_planes(w, h, with_covariance), crate::frame::layout::REQUIRED, &maps)
         .expect("synthetic frame is complete")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The shipped network's tiling: 768-px cores at most, halo 128, multiple 16.
+    fn default_tiling() -> Tiling {
+        Tiling { tile: DEFAULT_TILE_V2, halo: 128, multiple: 16, region_pixels: DEFAULT_REGION_PIXELS }
+    }
+
+    /// Checks that `cores` cover the frame once, start on the grid and stay within the
+    /// tiling's bounds; returns the largest region's pixels.
+    fn check(t: &Tiling, w: usize, h: usize, cores: &[Rect]) -> usize {
+        let mut covered = vec![0u8; w * h];
+        let mut largest = 0;
+        for c in cores {
+            assert!(c.x % t.multiple == 0 && c.y % t.multiple == 0, "{c:?} starts off the grid");
+            assert!(c.w <= t.tile && c.h <= t.tile, "{c:?} is larger than {}", t.tile);
+            for y in c.y..c.y + c.h {
+                for x in c.x..c.x + c.w {
+                    covered[y * w + x] += 1;
+                }
+            }
+            largest = largest.max(expand(*c, t.halo, w, h).pixels());
+        }
+        assert!(covered.iter().all(|n| *n == 1), "{w}×{h}: the cores do not cover the frame once");
+        largest
+    }
+
+    #[test]
+    fn frames_up_to_1080p_are_balanced_and_larger_ones_split_to_the_region_bound() {
+        let t = default_tiling();
+        // (frame, cores across × down, core size)
+        for ((w, h), (nx, ny), (cw, ch)) in [
+            ((1280, 720), (2, 1), (640, 720)),
+            ((1920, 1080), (3, 2), (640, 544)),
+            // 5 × 3 cores of 768 × 720 would make regions of 1024 × 976.
+            ((3840, 2160), (7, 4), (560, 544)),
+        ] {
+            let cores = t.cores(w, h);
+            assert_eq!(cores.len(), nx * ny, "{w}×{h}");
+            assert_eq!((cores[0].w, cores[0].h), (cw, ch), "{w}×{h}");
+            assert!(check(&t, w, h, &cores) <= t.region_pixels, "{w}×{h}");
+        }
+        let unbounded = Tiling { region_pixels: usize::MAX, ..t };
+        assert_eq!(unbounded.cores(3840, 2160).len(), 15);
+    }
+
+    #[test]
+    fn any_frame_is_covered_within_the_bounds() {
+        for (tile, halo, multiple, region) in
+            [(768, 128, 16, DEFAULT_REGION_PIXELS), (20, 8, 4, 30 * 30), (7, 0, 1, 49)]
+        {
+            let t = Tiling { tile, halo, multiple, region_pixels: region };
+            for (w, h) in [(1, 1), (5, 3), (37, 91), (100, 100), (1000, 17), (2049, 1531)] {
+                let largest = check(&t, w, h, &t.cores(w, h));
+                // Only cores already at the grid's size may leave a region over the bound.
+                let min_region =
+                    expand(Rect { x: 2 * multiple, y: 2 * multiple, w: multiple, h: multiple }, halo, w, h);
+                assert!(largest <= region.max(min_region.pixels()), "{w}×{h}, tile {tile}: region {largest}");
+            }
+        }
+        assert_eq!(Tiling::plain(0).cores(30, 20), vec![Rect { x: 0, y: 0, w: 30, h: 20 }]);
+    }
 }

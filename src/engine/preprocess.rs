@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use super::contract::{FeatureSet, COLOR_CHANNELS};
-use crate::frame::{Buffer, Frame};
+use crate::frame::{Buffer, Frame, PlaneRef};
 
 /// Added to albedo before dividing the diffuse color by it (KPCN's value).
 pub const EPS: f32 = 0.00316;
@@ -67,10 +67,9 @@ pub struct FrameStats {
 
 impl FrameStats {
     pub fn of(frame: &Frame) -> FrameStats {
-        let max = |p: &[f32]| p.iter().copied().fold(0f32, f32::max);
         FrameStats {
-            depth_max: max(frame.plane(Buffer::Depth, 0)),
-            covariance_max: if frame.has(Buffer::Covariance) { max(frame.plane(Buffer::Covariance, 0)) } else { 0.0 },
+            depth_max: frame.plane(Buffer::Depth, 0).max(),
+            covariance_max: if frame.has(Buffer::Covariance) { frame.plane(Buffer::Covariance, 0).max() } else { 0.0 },
         }
     }
 }
@@ -108,45 +107,53 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
     let mut features = vec![0f32; set.feature_channels() * n];
 
     let albedo = frame.planes(Buffer::Albedo);
+    // Each channel's plane of a variance buffer (a mono one answers for all three).
+    let rgb = |buffer: Buffer| -> [PlaneRef<'_>; 3] { std::array::from_fn(|c| frame.plane(buffer, c)) };
     // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)². Negative colors and
     // albedos (a malformed frame) are taken as 0: a + ε is then never near zero.
     {
-        let d = frame.planes(Buffer::Diffuse);
+        let d = frame.f32_planes(Buffer::Diffuse);
         let [base, var, gx, gy] = color_layout(&mut diffuse, n);
         for c in 0..3 {
-            let (d, a) = (&d[c], &albedo[c]);
+            let (d, a) = (&d[c], albedo[c]);
             with_gradients(
                 frame,
                 rect,
-                |i| bounded(d[i].max(0.0) / (a[i].max(0.0) + EPS)),
+                |start, out| {
+                    a.read(start, out);
+                    for (o, d) in out.iter_mut().zip(&d[start..]) {
+                        *o = bounded(d.max(0.0) / (o.max(0.0) + EPS));
+                    }
+                },
                 &mut base[c * n..][..n],
                 &mut gx[c * n..][..n],
                 &mut gy[c * n..][..n],
             );
         }
+        let dv = rgb(Buffer::DiffuseVariance);
         per_pixel(frame, rect, var, |i| {
-            let v =
-                |c: usize| bounded(frame.plane(Buffer::DiffuseVariance, c)[i] / (albedo[c][i].max(0.0) + EPS).powi(2));
+            let v = |c: usize| bounded(dv[c].get(i) / (albedo[c].get(i).max(0.0) + EPS).powi(2));
             bounded(luminance(v(0), v(1), v(2)))
         });
     }
     // Specular color: ln(1 + s); variance scaled by 1 / (1 + s)² (delta method).
     {
-        let s = frame.planes(Buffer::Specular);
+        let s = frame.f32_planes(Buffer::Specular);
         let [base, var, gx, gy] = color_layout(&mut specular, n);
         for c in 0..3 {
             let s = &s[c];
             with_gradients(
                 frame,
                 rect,
-                |i| s[i].max(0.0).ln_1p(),
+                each_pixel(|i| s[i].max(0.0).ln_1p()),
                 &mut base[c * n..][..n],
                 &mut gx[c * n..][..n],
                 &mut gy[c * n..][..n],
             );
         }
+        let sv = rgb(Buffer::SpecularVariance);
         per_pixel(frame, rect, var, |i| {
-            let v = |c: usize| bounded(frame.plane(Buffer::SpecularVariance, c)[i] / (1.0 + s[c][i].max(0.0)).powi(2));
+            let v = |c: usize| bounded(sv[c].get(i) / (1.0 + s[c][i].max(0.0)).powi(2));
             bounded(luminance(v(0), v(1), v(2)))
         });
     }
@@ -158,20 +165,28 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
         let (vars, rest) = rest.split_at_mut(var_count * n);
         let (gx, gy) = rest.split_at_mut(base_count * n);
         let normal = frame.planes(Buffer::Normal);
-        let depth = frame.plane(Buffer::Depth, 0);
+        let depth = frame.f32_plane(Buffer::Depth, 0);
         // One (base, gx, gy) triple of planes per feature, in input order.
         let mut slots = base.chunks_mut(n).zip(gx.chunks_mut(n)).zip(gy.chunks_mut(n)).map(|((b, x), y)| (b, x, y));
         let mut next = || slots.next().expect("one slot per feature");
-        for plane in normal.iter().chain(albedo) {
+        for plane in normal.iter().chain(&albedo) {
             let (b, x, y) = next();
-            with_gradients(frame, rect, |i| bounded(plane[i]), b, x, y);
+            let values = |start: usize, out: &mut [f32]| {
+                plane.read(start, out);
+                out.iter_mut().for_each(|o| *o = bounded(*o));
+            };
+            with_gradients(frame, rect, values, b, x, y);
         }
         let (b, x, y) = next();
-        with_gradients(frame, rect, |i| scaled(depth[i], stats.depth_max), b, x, y);
+        with_gradients(frame, rect, each_pixel(|i| scaled(depth[i], stats.depth_max)), b, x, y);
         if set.uses_covariance() {
             let cov = frame.plane(Buffer::Covariance, 0);
             let (b, x, y) = next();
-            with_gradients(frame, rect, |i| scaled(cov[i], stats.covariance_max), b, x, y);
+            let values = |start: usize, out: &mut [f32]| {
+                cov.read(start, out);
+                out.iter_mut().for_each(|o| *o = scaled(*o, stats.covariance_max));
+            };
+            with_gradients(frame, rect, values, b, x, y);
         }
 
         let mut var_buffers = vec![
@@ -183,8 +198,9 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
             var_buffers.push((Buffer::CovarianceVariance, inverse_square(stats.covariance_max)));
         }
         for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {
+            let planes = rgb(buffer);
             per_pixel(frame, rect, &mut vars[j * n..][..n], |i| {
-                let v = |c: usize| bounded(frame.plane(buffer, c)[i]);
+                let v = |c: usize| bounded(planes[c].get(i));
                 bounded(luminance(v(0), v(1), v(2)) * scale)
             });
         }
@@ -218,8 +234,18 @@ fn per_pixel(frame: &Frame, rect: Rect, out: &mut [f32], f: impl Fn(usize) -> f3
     });
 }
 
-/// Fills `base` with `f` and `gx`, `gy` with its forward differences, 0 past the frame's
-/// last column / row.
+/// A row function for [`with_gradients`] from a function of each pixel's frame index.
+fn each_pixel(f: impl Fn(usize) -> f32 + Sync) -> impl Fn(usize, &mut [f32]) + Sync {
+    move |start, out| {
+        for (x, o) in out.iter_mut().enumerate() {
+            *o = f(start + x);
+        }
+    }
+}
+
+/// Fills `base` with the values `f` gives and `gx`, `gy` with their forward differences, 0
+/// past the frame's last column / row. `f(start, out)` writes the values of the pixels of
+/// frame index `start ..` (`out.len()` of them, on one row).
 ///
 /// `f` is evaluated once per pixel (plus one row per block of rows and the column right of
 /// the rect): each row's values go to a row buffer, from which the value and both
@@ -227,7 +253,7 @@ fn per_pixel(frame: &Frame, rect: Rect, out: &mut [f32], f: impl Fn(usize) -> f3
 fn with_gradients(
     frame: &Frame,
     rect: Rect,
-    f: impl Fn(usize) -> f32 + Sync,
+    f: impl Fn(usize, &mut [f32]) + Sync,
     base: &mut [f32],
     gx: &mut [f32],
     gy: &mut [f32],
@@ -237,12 +263,7 @@ fn with_gradients(
     let (fw, fh, w) = (frame.width, frame.height, rect.w);
     // The rect's columns and, inside the frame, the one to their right (for gx).
     let cols = (w + 1).min(fw - rect.x);
-    let row_values = |y: usize, out: &mut [f32]| {
-        let start = y * fw + rect.x;
-        for (x, o) in out.iter_mut().enumerate() {
-            *o = f(start + x);
-        }
-    };
+    let row_values = |y: usize, out: &mut [f32]| f(y * fw + rect.x, out);
     let block = ROWS * w;
     base.par_chunks_mut(block).zip(gx.par_chunks_mut(block)).zip(gy.par_chunks_mut(block)).enumerate().for_each(
         |(b, ((base, gx), gy))| {

@@ -9,10 +9,11 @@
 //! # Memory
 //! Carried channels are moved out of the decoded file, never converted: an f16 AOV stays
 //! f16 and a u32 ID stays exact. A channel that is both a network input and carried (the
-//! albedo under `layers=all`) is held once, as the frame's f32 plane, and written back from
-//! it in its own sample type once the frame is no longer needed. Only where the frame's
-//! plane would not give the input back (non-finite samples, which the frame replaces by 0;
-//! u32 samples; Cycles passes the frame derives its buffers from) is the input kept as well.
+//! albedo under `layers=all`) is held once, as the frame's plane, and written back from it
+//! in its own sample type once the frame is no longer needed. Only where the frame's plane
+//! would not give the input back (non-finite samples, which the frame replaces by 0; u32
+//! samples; float samples of a buffer the frame keeps as half, `plane.rs`; Cycles passes
+//! the frame derives its buffers from) is the input kept as well.
 
 use std::collections::{HashMap, HashSet};
 
@@ -201,7 +202,7 @@ pub(super) fn split(decoded: Decoded, carry: &Carry, maps: &ChannelMaps) -> (Nam
             continue;
         }
         match (role[i], exact_type(&channel.sample_data)) {
-            (Some((buffer, component)), Some(sample)) => {
+            (Some((buffer, component)), Some(sample)) if sample == SampleType::F16 || !buffer.half_precision() => {
                 let AnyChannel { name: carried_name, sample_data, quantize_linearly, .. } = channel;
                 planes.push((name.to_string(), to_plane(sample_data)));
                 out.push(Source::Frame { name: carried_name, quantize_linearly, sample, buffer, component });

@@ -71,6 +71,12 @@ impl Buffer {
         }
     }
 
+    /// Whether the frame may keep the buffer as f16 (`frame::plane`): every buffer but
+    /// the colors the networks filter and the depth.
+    pub fn half_precision(self) -> bool {
+        !matches!(self, Buffer::Diffuse | Buffer::Specular | Buffer::Color | Buffer::Depth)
+    }
+
     /// The buffer's name in messages and reports.
     pub fn name(self) -> &'static str {
         match self {

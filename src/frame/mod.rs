@@ -5,15 +5,19 @@
 mod carry;
 mod exr_io;
 pub mod layout;
+mod plane;
 pub mod presets;
 pub mod renderers;
 
 pub use carry::{Carried, Carry, FrameHeader, ALPHA};
 pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, SampleType, RESULT_ENCODING};
 pub use layout::{Buffer, BUFFER_COUNT};
+pub use plane::PlaneRef;
 pub use presets::ChannelMaps;
 
 use std::sync::Arc;
+
+use plane::Stored;
 
 use serde::Serialize;
 
@@ -94,10 +98,11 @@ pub struct Frame {
     pub width: usize,
     pub height: usize,
     /// Indexed by `Buffer as usize`: 3 planes for colors, 1 or 3 for variances, 1 for depth
-    /// and covariance. Shared between clones: a clone costs no pixels until a buffer is
+    /// and covariance; the colors and depth as f32, the rest as f16 where it fits
+    /// ([`plane`]). Shared between clones: a clone costs no pixels until a buffer is
     /// changed ([`Frame::planes_mut`] copies that buffer alone), so the engine's firefly
     /// handling copies only the diffuse and specular of a 4K frame, not all of it.
-    buffers: [Option<Arc<Vec<Plane>>>; BUFFER_COUNT],
+    buffers: [Option<Arc<Stored>>; BUFFER_COUNT],
     pub sanitized: Sanitized,
     /// Variance buffers the file did not have, taken as 0
     /// ([`Frame::fill_missing_variances`]).
@@ -126,7 +131,7 @@ impl Frame {
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
         check_required(&names, required, maps)?;
         let resolved = layout::resolve(&names);
-        let mut buffers: [Option<Arc<Vec<Plane>>>; BUFFER_COUNT] = Default::default();
+        let mut buffers: [Option<Arc<Stored>>; BUFFER_COUNT] = Default::default();
         let mut sanitized = Sanitized::default();
         for buffer in Buffer::ALL {
             let Some(indices) = &resolved[buffer as usize] else { continue };
@@ -146,7 +151,7 @@ impl Frame {
                 sanitized.total += count;
                 sanitized.by_buffer.insert(buffer.name().to_string(), count);
             }
-            buffers[buffer as usize] = Some(Arc::new(taken));
+            buffers[buffer as usize] = Some(Arc::new(Stored::new(buffer, taken)));
         }
         Ok(Frame { width, height, buffers, sanitized, missing_variances: Vec::new(), beauty_only })
     }
@@ -165,7 +170,7 @@ impl Frame {
             if self.has(var) || !self.has(base) {
                 continue;
             }
-            self.buffers[var as usize] = Some(Arc::new(vec![vec![0f32; n]]));
+            self.buffers[var as usize] = Some(Arc::new(Stored::zeros(var, 1, n)));
             self.missing_variances.push(var.name().to_string());
         }
     }
@@ -178,33 +183,63 @@ impl Frame {
         self.buffers[buffer as usize].is_some()
     }
 
-    /// All planes of a buffer.
-    ///
-    /// # Panics
-    /// If the buffer is absent; required buffers are always present.
-    pub fn planes(&self, buffer: Buffer) -> &[Plane] {
+    fn stored(&self, buffer: Buffer) -> &Stored {
         self.buffers[buffer as usize]
             .as_deref()
-            .map(Vec::as_slice)
             .unwrap_or_else(|| panic!("buffer {} is absent; check Frame::has first", buffer.name()))
     }
 
+    /// All planes of a buffer, whatever their storage ([`PlaneRef`]).
+    ///
+    /// # Panics
+    /// If the buffer is absent; required buffers are always present.
+    pub fn planes(&self, buffer: Buffer) -> Vec<PlaneRef<'_>> {
+        let stored = self.stored(buffer);
+        (0..stored.len()).map(|c| stored.plane(c)).collect()
+    }
+
     /// Plane `c` of a buffer; a one-plane buffer (a mono variance) answers for every `c`.
-    pub fn plane(&self, buffer: Buffer, c: usize) -> &[f32] {
-        let planes = self.planes(buffer);
+    pub fn plane(&self, buffer: Buffer, c: usize) -> PlaneRef<'_> {
+        let stored = self.stored(buffer);
+        stored.plane(c.min(stored.len() - 1))
+    }
+
+    /// The planes of a buffer that is always f32: a color (diffuse, specular, color) or the
+    /// depth ([`Buffer::half_precision`] is false).
+    ///
+    /// # Panics
+    /// If the buffer is absent or may be kept as f16.
+    pub fn f32_planes(&self, buffer: Buffer) -> &[Plane] {
+        match self.stored(buffer) {
+            Stored::F32(planes) => planes,
+            Stored::F16(_) => panic!("buffer {} is kept as f16; read it with Frame::planes", buffer.name()),
+        }
+    }
+
+    /// Plane `c` of a buffer that is always f32 ([`Frame::f32_planes`]).
+    pub fn f32_plane(&self, buffer: Buffer, c: usize) -> &[f32] {
+        let planes = self.f32_planes(buffer);
         &planes[c.min(planes.len() - 1)]
     }
 
-    /// All planes of a buffer, to change them in place (e.g. the engine's firefly handling);
-    /// a buffer shared with a clone is copied first.
+    /// All planes of a buffer as f32, to change them in place (e.g. the engine's firefly
+    /// handling); a buffer shared with a clone is copied first, and one kept as f16 is
+    /// converted (and kept as f32 from then on).
     ///
     /// # Panics
     /// If the buffer is absent.
     pub fn planes_mut(&mut self, buffer: Buffer) -> &mut [Plane] {
-        self.buffers[buffer as usize]
+        let slot = self.buffers[buffer as usize]
             .as_mut()
-            .map(|planes| Arc::make_mut(planes).as_mut_slice())
-            .unwrap_or_else(|| panic!("buffer {} is absent; check Frame::has first", buffer.name()))
+            .unwrap_or_else(|| panic!("buffer {} is absent; check Frame::has first", buffer.name()));
+        let stored = Arc::make_mut(slot);
+        if let Stored::F16(_) = stored {
+            *stored = Stored::F32(std::mem::replace(stored, Stored::F32(Vec::new())).into_f32());
+        }
+        match stored {
+            Stored::F32(planes) => planes.as_mut_slice(),
+            Stored::F16(_) => unreachable!("converted above"),
+        }
     }
 
     /// Drops a buffer (e.g. covariance, to run the no-covariance model on a full frame).
@@ -212,15 +247,15 @@ impl Frame {
         self.buffers[buffer as usize] = None;
     }
 
-    /// Takes a buffer's planes out of the frame, which then lacks it.
+    /// Takes a buffer's planes out of the frame as f32, which then lacks it.
     pub fn take(&mut self, buffer: Buffer) -> Option<Vec<Plane>> {
-        self.buffers[buffer as usize].take().map(Arc::unwrap_or_clone)
+        self.buffers[buffer as usize].take().map(|s| Arc::unwrap_or_clone(s).into_f32())
     }
 
     /// The frame's total radiance: `R,G,B` if present, else diffuse + specular.
     pub fn color(&self) -> [Plane; 3] {
         if self.has(Buffer::Color) {
-            let p = self.planes(Buffer::Color);
+            let p = self.f32_planes(Buffer::Color);
             return [p[0].clone(), p[1].clone(), p[2].clone()];
         }
         self.diffuse_plus_specular()
@@ -236,14 +271,14 @@ impl Frame {
         let n = self.pixels();
         if !self.beauty_only {
             let beauty = self.diffuse_plus_specular();
-            out.buffers[Buffer::Diffuse as usize] = Some(Arc::new(beauty.into()));
-            out.buffers[Buffer::Specular as usize] = Some(Arc::new(vec![vec![0f32; n]; 3]));
+            out.buffers[Buffer::Diffuse as usize] = Some(Arc::new(Stored::F32(beauty.into())));
+            out.buffers[Buffer::Specular as usize] = Some(Arc::new(Stored::zeros(Buffer::Specular, 3, n)));
         }
         out.remove(Buffer::Covariance);
         out.remove(Buffer::CovarianceVariance);
         for var in Buffer::ALL.into_iter().filter_map(Buffer::variance) {
-            if out.has(var) && out.planes(var).iter().flatten().any(|v| *v != 0.0) {
-                out.buffers[var as usize] = Some(Arc::new(vec![vec![0f32; n]]));
+            if out.has(var) && out.planes(var).iter().any(PlaneRef::any_nonzero) {
+                out.buffers[var as usize] = Some(Arc::new(Stored::zeros(var, 1, n)));
             }
         }
         out.beauty_only = true;
@@ -253,8 +288,8 @@ impl Frame {
     /// Diffuse + specular, per channel.
     pub fn diffuse_plus_specular(&self) -> [Plane; 3] {
         std::array::from_fn(|c| {
-            let d = self.plane(Buffer::Diffuse, c);
-            let s = self.plane(Buffer::Specular, c);
+            let d = self.f32_plane(Buffer::Diffuse, c);
+            let s = self.f32_plane(Buffer::Specular, c);
             d.iter().zip(s).map(|(a, b)| a + b).collect()
         })
     }

@@ -143,6 +143,7 @@ impl Settings {
         let mut engine = EngineConfig::new(&args.models);
         engine.tile = args.tile;
         engine.tile_v2 = args.tile_v2;
+        engine.region_pixels = args.region_pixels;
         engine.threads = args.threads_per_worker();
         engine.ort_library = args.ort_library.clone();
         engine.device = args.device;

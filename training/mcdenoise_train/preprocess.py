@@ -42,10 +42,37 @@ FILE_NAMES = {
 }
 
 
+# The buffers the engine keeps as half floats when every sample of the buffer fits half's
+# range, else as float32 (docs/frame-layout.md, src/frame/plane.rs): all but the colors and
+# the depth. A buffer is the part of a channel name before its first dot.
+HALF_BUFFERS = frozenset(("albedo", "normal", "covariance") + tuple(
+    f"{b}Variance" for b in ("diffuse", "specular", "albedo", "normal", "depth", "covariance")))
+HALF_MAX = 65504.0
+
+
+def stored_as_engine(ch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A frame's channels as the engine holds them in memory: those of `HALF_BUFFERS` rounded
+    to half float where all of their buffer's samples fit (exact for channels a file stores
+    as half); non-finite samples taken as 0 first, as the engine does."""
+    out = dict(ch)
+    groups: dict[str, list[str]] = {}
+    for name in ch:
+        groups.setdefault(name.split(".")[0], []).append(name)
+    for buffer, names in groups.items():
+        if buffer not in HALF_BUFFERS:
+            continue
+        planes = [np.nan_to_num(np.asarray(ch[n], np.float32), nan=0.0, posinf=0.0, neginf=0.0) for n in names]
+        if all(np.abs(p).max(initial=0.0) <= HALF_MAX for p in planes):
+            out.update({n: p.astype(np.float16).astype(np.float32) for n, p in zip(names, planes)})
+    return out
+
+
 def raw_from_channels(ch: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float]:
     """A frame's channels (name -> [H, W]) as a raw `[RAW_CHANNELS, H, W]` float32 array and
-    its depth and covariance maxima. Missing covariance (frames of renderers without it)
-    and missing variances are zeros."""
+    its depth and covariance maxima, the auxiliary buffers rounded as the engine stores them
+    (`stored_as_engine`). Missing covariance (frames of renderers without it) and missing
+    variances are zeros."""
+    ch = stored_as_engine(ch)
     h, w = next(iter(ch.values())).shape
     out = np.zeros((len(RAW), h, w), np.float32)
     for i, n in enumerate(RAW):

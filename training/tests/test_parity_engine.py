@@ -46,6 +46,7 @@ from mcdenoise_train.contract import COMPONENTS, EPS, NOCOV_INDICES
 from mcdenoise_train.export import export_onnx, random_models, scale_head
 from mcdenoise_train.exr import exr_pixel_types, read_exr, write_exr
 from mcdenoise_train.frames import synthetic_frame
+from mcdenoise_train.preprocess import stored_as_engine
 from mcdenoise_train.recon import inverse_diffuse, inverse_specular, reconstruct
 
 H, W = 40, 48
@@ -133,8 +134,9 @@ def _grads(b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def reference_preprocess(ch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """frame-layout.md's preprocessing in float64 (variances given as one channel)."""
-    f = {k: v.astype(np.float64) for k, v in ch.items()}
+    """frame-layout.md's preprocessing in float64 (variances given as one channel), of the
+    channels as the engine stores them (half floats for the auxiliary buffers)."""
+    f = {k: v.astype(np.float64) for k, v in stored_as_engine(ch).items()}
     rgb = lambda name: np.stack([f[f"{name}.{c}"] for c in "RGB"])
     lum = lambda x: np.tensordot(LUM, x, axes=1)
     d, s, a, n = rgb("diffuse"), rgb("specular"), rgb("albedo"), rgb("normal")
