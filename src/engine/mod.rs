@@ -416,13 +416,12 @@ pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, F
         return (None, report);
     }
     let (w, h) = (frame.width, frame.height);
-    let rgb = |buffer: Buffer| -> [PlaneRef<'_>; 3] { std::array::from_fn(|c| frame.plane(buffer, c)) };
-    let albedo = rgb(Buffer::Albedo);
+    let albedo = frame.rgb(Buffer::Albedo);
     let layer = |color: Buffer, variance: Buffer, albedo: Option<[PlaneRef<'_>; 3]>| -> Vec<fireflies::Fix> {
         let c = frame.f32_planes(color);
         // Variances filled in as zeros for a missing buffer say nothing.
         let known = frame.has(variance) && !frame.missing_variances.iter().any(|m| m == variance.name());
-        let layer = Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| rgb(variance)), albedo };
+        let layer = Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| frame.rgb(variance)), albedo };
         fireflies::detect(layer, w, h, settings)
     };
     let diffuse = layer(Buffer::Diffuse, Buffer::DiffuseVariance, Some(albedo));

@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use super::contract::{FeatureSet, COLOR_CHANNELS};
-use crate::frame::{Buffer, Frame, PlaneRef};
+use crate::frame::{Buffer, Frame};
 
 /// Added to albedo before dividing the diffuse color by it (KPCN's value).
 pub const EPS: f32 = 0.00316;
@@ -106,9 +106,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
     let mut specular = vec![0f32; COLOR_CHANNELS * n];
     let mut features = vec![0f32; set.feature_channels() * n];
 
-    let albedo = frame.planes(Buffer::Albedo);
-    // Each channel's plane of a variance buffer (a mono one answers for all three).
-    let rgb = |buffer: Buffer| -> [PlaneRef<'_>; 3] { std::array::from_fn(|c| frame.plane(buffer, c)) };
+    let albedo = frame.rgb(Buffer::Albedo);
     // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)². Negative colors and
     // albedos (a malformed frame) are taken as 0: a + ε is then never near zero.
     {
@@ -130,7 +128,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
                 &mut gy[c * n..][..n],
             );
         }
-        let dv = rgb(Buffer::DiffuseVariance);
+        let dv = frame.rgb(Buffer::DiffuseVariance);
         per_pixel(frame, rect, var, |i| {
             let v = |c: usize| bounded(dv[c].get(i) / (albedo[c].get(i).max(0.0) + EPS).powi(2));
             bounded(luminance(v(0), v(1), v(2)))
@@ -151,7 +149,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
                 &mut gy[c * n..][..n],
             );
         }
-        let sv = rgb(Buffer::SpecularVariance);
+        let sv = frame.rgb(Buffer::SpecularVariance);
         per_pixel(frame, rect, var, |i| {
             let v = |c: usize| bounded(sv[c].get(i) / (1.0 + s[c][i].max(0.0)).powi(2));
             bounded(luminance(v(0), v(1), v(2)))
@@ -198,7 +196,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
             var_buffers.push((Buffer::CovarianceVariance, inverse_square(stats.covariance_max)));
         }
         for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {
-            let planes = rgb(buffer);
+            let planes = frame.rgb(buffer);
             per_pixel(frame, rect, &mut vars[j * n..][..n], |i| {
                 let v = |c: usize| bounded(planes[c].get(i));
                 bounded(luminance(v(0), v(1), v(2)) * scale)

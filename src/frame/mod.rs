@@ -204,6 +204,12 @@ impl Frame {
         stored.plane(c.min(stored.len() - 1))
     }
 
+    /// The three planes of a color-like buffer; a one-plane buffer (a mono variance) stands
+    /// in all three.
+    pub fn rgb(&self, buffer: Buffer) -> [PlaneRef<'_>; 3] {
+        std::array::from_fn(|c| self.plane(buffer, c))
+    }
+
     /// The planes of a buffer that is always f32: a color (diffuse, specular, color) or the
     /// depth ([`Buffer::half_precision`] is false).
     ///
