@@ -373,6 +373,17 @@ def parse(argv=None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+# Steps at which a run with a time budget fits its schedule's length to the measured rate.
+FIT_AT = (50, 250, 1000)
+
+
+def fitted_steps(step: int, rate: float, budget: float, elapsed: float) -> int:
+    """The schedule's length for a run at `step` going `rate` steps/s with `elapsed` of its
+    `budget` seconds spent. Validation passes take time too: they are budgeted at 5 %. The
+    schedule always has some steps left, so a late fit still anneals the learning rate."""
+    return max(step + max(50, step // 10), int(step + rate * (0.95 * budget - elapsed)))
+
+
 def main(argv=None) -> int:
     a = parse(argv)
     torch.set_num_threads(max(1, a.threads))
@@ -463,6 +474,7 @@ def main(argv=None) -> int:
 
     stop = False
     t_fit = t_run = t_reload = time.time()
+    fit_from = step
     while step < a.steps and not stop:
         if a.reload_every > 0 and time.time() - t_reload >= a.reload_every:
             t_reload = time.time()
@@ -483,13 +495,15 @@ def main(argv=None) -> int:
         opt.step()
         sched.step()
         step += 1
-        if a.time_budget is not None and step == 50:
-            rate = 50 / (time.time() - t_fit)
-            # Validation passes take time too: budget them at 5 %.
-            a.steps = max(100, int(50 + rate * (0.95 * a.time_budget - (time.time() - t0))))
+        if a.time_budget is not None and step in FIT_AT:
+            # The first steps are slower (cuDNN's autotuning, allocator growth, a renderer
+            # starting beside): the length is fitted again on the rates of later steps.
+            rate = (step - fit_from) / (time.time() - t_fit)
+            a.steps = fitted_steps(step, rate, a.time_budget, time.time() - t0)
             a.val_every = max(50, a.steps // 8)
             sched = schedule(a.steps, done=step)
             fitted = True
+            fit_from, t_fit = step, time.time()
             print(f"{rate:.1f} steps/s: schedule fitted to {a.steps} steps", file=sys.stderr, flush=True)
         if step % 20 == 0:
             row = {"step": step, "loss": float(loss.detach()), **parts, "lr": sched.get_last_lr()[0], "time": time.time() - t0,

@@ -191,3 +191,16 @@ def test_crops_are_the_frames_windows():
         assert torch.equal(raw[k], fs.raw[i, :, y:y + 17, x:x + 17])
         assert torch.equal(ref[k], fs.ref[i, :, y:y + 17, x:x + 17])
         assert torch.equal(maxima[k], fs.maxima[i])
+
+
+def test_a_time_budget_is_refitted_on_the_rate_of_later_steps():
+    # Fitted at step 50 on a slow start (0.7 steps/s over 70 s of a 300-s budget), the
+    # schedule is short; refitted at step 250 on the steady rate, it fills the budget.
+    first = train_ms.fitted_steps(50, 0.7, 300.0, 70.0)
+    assert first == int(50 + 0.7 * (0.95 * 300 - 70))
+    again = train_ms.fitted_steps(250, 12.0, 300.0, 87.0)
+    assert again == int(250 + 12.0 * (0.95 * 300 - 87))
+    assert again > 10 * first
+    # Past the budget, the schedule still has steps left to anneal the learning rate.
+    assert train_ms.fitted_steps(1000, 12.0, 300.0, 320.0) == 1100
+    assert 250 in train_ms.FIT_AT and 50 in train_ms.FIT_AT
