@@ -99,3 +99,27 @@ def test_training_takes_the_scenes_a_background_render_completes(tmp_path):
     assert config["reload_every"] == 1.0 and any(d.endswith("/data/w1") for d in config["data"])
     assert (home / "models" / "r" / "full" / "model.onnx").is_file()
     assert (home / "runs" / "r" / "val.jsonl").read_text().strip()
+
+
+@pytest.mark.skipif(not SCRIPT.exists(), reason="scripts/gpu-pipeline missing")
+def test_install_joins_the_pieces_of_two_carries(tmp_path):
+    # `prepare` cuts the packages into pieces that each fit one carry beside the checkout;
+    # `stash` copies each carry's piece, `install` joins them and unpacks the whole.
+    site = tmp_path / "site"
+    (site / "probe_pkg").mkdir(parents=True)
+    (site / "probe_pkg" / "__init__.py").write_text("VALUE = 7\n" + "# padding\n" * 5000)
+    archive = tmp_path / "site.tar.xz"
+    subprocess.run(["tar", "-C", str(site), "-cJf", str(archive), "."], check=True)
+    data = archive.read_bytes()
+    half = len(data) // 2
+    for name in ("c1", "c2"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "c1" / "site.tar.xz.part-a").write_bytes(data[:half])
+    (tmp_path / "c2" / "site.tar.xz.part-b").write_bytes(data[half:])
+    home = tmp_path / "home"
+    env = {**os.environ, "GPU_HOME": str(home), "PY": sys.executable}
+    _run(env, "stash", str(tmp_path / "c1"))
+    _run(env, "stash", str(tmp_path / "c2"))
+    _run(env, "install")
+    assert (home / "site" / "probe_pkg" / "__init__.py").read_text().startswith("VALUE = 7")
+    assert not list((home / "stash").glob("site.tar.xz.part-*"))
