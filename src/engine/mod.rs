@@ -455,17 +455,7 @@ fn plan<'a>(
     if model.features.uses_covariance() && !frame.has(Buffer::Covariance) {
         return Err(EngineError::NoModel(format!("the `{variant}` model needs a `covariance` channel")));
     }
-    let multiple = model.size_multiple();
-    let tile = match model.networks {
-        model::Networks::Pair { .. } => tiles[0],
-        model::Networks::MultiScale(_) => tiles[1],
-    };
-    let plan = Tiling {
-        tile: tile.next_multiple_of(multiple),
-        halo: model.receptive_radius().next_multiple_of(multiple),
-        multiple,
-        region_pixels,
-    };
+    let plan = Tiling::for_model(&model.infos(), tiles, region_pixels);
     Ok((model, plan))
 }
 
@@ -482,8 +472,28 @@ pub struct Tiling {
 }
 
 impl Tiling {
+    /// How frames are cut for the variant whose graphs `infos` describes (contract 1: a
+    /// pair; contract 2: one multi-scale graph): cores of at most `tiles[0]` (contract 1) or
+    /// `tiles[1]` (contract 2) a side, a halo of the receptive radius (at least what the
+    /// reconstruction reads), sides multiples of 2^(levels − 1) for contract 2, regions of
+    /// at most `region_pixels`. The engine cuts frames with it, and the daemon counts a
+    /// claimed job's tiles with it before the worker reports.
+    pub fn for_model(infos: &[&ModelInfo], tiles: [usize; 2], region_pixels: usize) -> Tiling {
+        let declared = infos.iter().map(|i| i.receptive_radius).max().unwrap_or(0);
+        let (tile, multiple, reads) = match infos.iter().find(|i| i.contract >= 2) {
+            Some(i) => (tiles[1], 1usize << i.levels.saturating_sub(1), multiscale::reach(i.kernel_size, i.levels)),
+            None => (tiles[0], 1, contract::KERNEL_RADIUS),
+        };
+        Tiling {
+            tile: tile.next_multiple_of(multiple),
+            halo: declared.max(reads).next_multiple_of(multiple),
+            multiple,
+            region_pixels,
+        }
+    }
+
     /// Square cores of side `tile` without halo: what a job's tile count is estimated from
-    /// before its model is known.
+    /// when its variant's model is not loaded.
     pub fn plain(tile: usize) -> Tiling {
         Tiling { tile, halo: 0, multiple: 1, region_pixels: usize::MAX }
     }
@@ -727,6 +737,44 @@ mod tests {
     /// The shipped network's tiling: 768-px cores at most, halo 128, multiple 16.
     fn default_tiling() -> Tiling {
         Tiling { tile: DEFAULT_TILE_V2, halo: 128, multiple: 16, region_pixels: DEFAULT_REGION_PIXELS }
+    }
+
+    fn info(contract: u32, kernel_size: usize, levels: usize, receptive_radius: usize) -> ModelInfo {
+        ModelInfo {
+            variant: Variant::Full,
+            component: None,
+            contract,
+            features: FeatureSet::Full,
+            path: "m.onnx".into(),
+            receptive_radius,
+            flops_per_pixel: 1.0,
+            architecture: "test".into(),
+            sha256: String::new(),
+            kernel_size,
+            levels,
+            input_compression: InputCompression::Engine,
+            outputs: Outputs::Kernels,
+        }
+    }
+
+    #[test]
+    fn a_models_tiling_follows_its_contract() {
+        // The shipped network's metadata (5 levels of 5×5 kernels, radius 117) gives the
+        // tiling above, and a 4K frame its 28 cores, as the daemon counts them at claim time.
+        let v2 = info(2, 5, 5, 117);
+        let t = Tiling::for_model(&[&v2], [256, DEFAULT_TILE_V2], DEFAULT_REGION_PIXELS);
+        let d = default_tiling();
+        assert_eq!((t.tile, t.halo, t.multiple, t.region_pixels), (d.tile, d.halo, d.multiple, d.region_pixels));
+        assert_eq!(t.cores(3840, 2160).len(), 28);
+        // A declared radius below what the reconstruction reads is raised to it.
+        let t = Tiling::for_model(&[&info(2, 5, 5, 0)], [256, 500], usize::MAX);
+        assert_eq!((t.tile, t.halo, t.multiple), (512, multiscale::reach(5, 5).next_multiple_of(16), 16));
+        // Contract 1, a pair: its own tile size, no alignment, at least the kernel's radius.
+        let (d1, s1) = (info(1, 21, 1, 13), info(1, 21, 1, 22));
+        let t = Tiling::for_model(&[&d1, &s1], [300, 768], usize::MAX);
+        assert_eq!((t.tile, t.halo, t.multiple), (300, 22, 1));
+        let t = Tiling::for_model(&[&info(1, 21, 1, 3)], [300, 768], usize::MAX);
+        assert_eq!(t.halo, contract::KERNEL_RADIUS);
     }
 
     /// Checks that `cores` cover the frame once, start on the grid and stay within the

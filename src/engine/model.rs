@@ -575,24 +575,6 @@ impl VariantModel {
         }
     }
 
-    /// Context a tile's network input needs around its core: the largest declared
-    /// receptive radius, at least what the reconstruction reads.
-    pub fn receptive_radius(&self) -> usize {
-        let declared = self.infos().iter().map(|i| i.receptive_radius).max().unwrap_or(0);
-        match &self.networks {
-            Networks::Pair { .. } => declared.max(contract::KERNEL_RADIUS),
-            Networks::MultiScale(net) => declared.max(super::multiscale::reach(net.info.kernel_size, net.info.levels)),
-        }
-    }
-
-    /// What tile origins, tile sides and region sides must be multiples of.
-    pub fn size_multiple(&self) -> usize {
-        match &self.networks {
-            Networks::Pair { .. } => 1,
-            Networks::MultiScale(net) => net.size_multiple,
-        }
-    }
-
     /// FLOPs per pixel of both components.
     pub fn flops_per_pixel(&self) -> f64 {
         self.infos().iter().map(|i| i.flops_per_pixel).sum()

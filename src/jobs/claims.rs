@@ -167,20 +167,18 @@ impl WorkerLink {
         r.state = JobState::Running;
         r.attempts += 1;
         r.started_at_ms = Some(now);
-        // The tile size of the contract the job's model has (for `auto`: that of full and
-        // nocov when they agree, which the shipped models do); the worker's first progress
-        // report has the exact count.
-        let contract_of =
-            |v: crate::engine::Variant| s.models().and_then(|m| m.iter().find(|m| m.variant == v).map(|m| m.contract));
-        let contract = match r.options.variant {
-            Some(v) => contract_of(v),
-            None => Some(contract_of(crate::engine::Variant::Full))
-                .filter(|c| *c == contract_of(crate::engine::Variant::Nocov))
-                .flatten(),
-        };
+        // The tiles of the job's variant, cut as the engine will cut them (for `auto`: as
+        // for `full`, whose shape the shipped `nocov` shares); the worker's progress reports
+        // have the exact count.
         let engine = &s.inner.settings.engine;
-        let tile = if contract == Some(2) { engine.tile_v2 } else { engine.tile };
-        let tiles = crate::engine::tile_grid(r.width as usize, r.height as usize, tile).len();
+        let variant = r.options.variant.unwrap_or(crate::engine::Variant::Full);
+        let infos: Vec<_> = s.models().into_iter().flatten().filter(|m| m.variant == variant).collect();
+        let plan = if infos.is_empty() {
+            crate::engine::Tiling::plain(engine.tile)
+        } else {
+            crate::engine::Tiling::for_model(&infos, [engine.tile, engine.tile_v2], engine.region_pixels)
+        };
+        let tiles = plan.cores(r.width as usize, r.height as usize).len();
         r.progress = Progress { tiles_done: 0, tiles_total: tiles as u32 };
         let queue_ms = (now - r.created_at_ms).max(0) as f64;
         let claim = Claim {
