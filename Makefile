@@ -5,7 +5,7 @@ export MCDENOISE_HOME
 export ORT_DYLIB_PATH ?= $(MCDENOISE_HOME)/lib/libonnxruntime.so.1.31.1
 export MCDENOISE_BIN := $(CURDIR)/target/release/mcdenoise
 
-.PHONY: setup setup-serve setup-train setup-test build test serve train eval bench ablation reliability fuzz
+.PHONY: setup setup-serve setup-train setup-test build test serve train eval bench int8-models ablation reliability fuzz
 
 ## Set-up (scripts/setup), in three sets under $(MCDENOISE_HOME); each target below names
 ## the one it needs. setup-serve: the ONNX Runtime library only (29 MB, seconds).
@@ -34,7 +34,8 @@ build:
 test: setup-test build
 	cargo test --release --locked
 	bash scripts/test-shared
-	cargo bench --locked --bench speed -- --quick --runs 1 --out target/bench/quick.json
+	$(call int8_quantize,2,64)
+	cargo bench --locked --bench speed -- --quick --runs 1 --int8-models $(INT8_MODELS) --out target/bench/quick.json
 	cd training && $(PY) -m pytest -q tests
 	$(PY) -m pytest -q tests/ops
 
@@ -114,12 +115,28 @@ eval: setup-train build
 	  else echo "no target/bench/frame-1280x720.exr (make bench writes it): quality against time left out"; fi
 	$(PY) benches/report.py
 
-## Speed (docs/results.md): GEMM ceiling, ONNX Runtime alone, the engine's stages, the
-## daemon with 1, 2 and 8 clients, peak memory at 720p/1080p/4K, OIDN on the same frame.
+## Speed (docs/results.md): GEMM ceilings (FP32 and int8), ONNX Runtime alone, the engine's
+## stages, the daemon with 1, 2 and 8 clients, peak memory at 720p/1080p/4K, int8 against
+## FP32, OIDN on the same frame.
 bench: setup-train build
-	cargo bench --locked --bench speed -- --models models --out docs/results/speed.json
+	$(call int8_quantize,$(INT8_FRAMES),$(INT8_CROP))
+	cargo bench --locked --bench speed -- --models models --int8-models $(INT8_MODELS) --out docs/results/speed.json
 	$(PY) benches/oidn_speed.py target/bench/frame-1280x720.exr --out docs/results/oidn.json
 	$(PY) benches/report.py
+
+## An int8 copy of the default model for the benchmark (mcdenoise_train.quantize, every
+## operator quantised, heads in float): calibrated on DATA's training frames, or on the
+## repository's fixtures where there are none (speed does not depend on the ranges; the
+## quality of int8 is measured on calibrated models, docs/training.md).
+INT8_MODELS ?= target/bench/int8
+INT8_FRAMES ?= 32
+INT8_CROP ?= 128
+INT8_FIXTURES = $(addprefix $(CURDIR)/tests/fixtures/frames/,caustic-spp8.exr cornell-spp8.exr shadow-spp8.exr)
+int8_quantize = cd training && $(PY) -m mcdenoise_train.quantize --model $(CURDIR)/models/full/model.onnx --ops all \
+	  --data $(abspath $(DATA)) --frames-from $(INT8_FIXTURES) --frames $(1) --crop $(2) \
+	  --out $(abspath $(INT8_MODELS))/full/model.onnx
+int8-models: setup-train
+	$(call int8_quantize,$(INT8_FRAMES),$(INT8_CROP))
 
 ## Shared mode's throughput with 1, 2 and 3 replicas against the embedded mode, on this
 ## machine (benches/scale_out.py): the shipped models on the quick speed benchmark's 320x180

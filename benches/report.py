@@ -100,12 +100,47 @@ def speed_section(speed: dict, oidn: dict | None) -> list[str]:
     out += ["", "Frame buffers: every decoded input plane and the output planes at 4 bytes per sample, which any "
             "denoiser holding the frame needs; what lies beyond them is the models, ONNX Runtime and the per-tile "
             "working set, bounded by the tile size."]
+    out += precision_section(speed, e)
     if oidn:
         out += ["", f"### Intel Open Image Denoise on the same {oidn['width']}×{oidn['height']} frame and cores",
                 "", "| denoiser | seconds | relative to ours |", "|---|---|---|",
                 f"| mcdenoise engine with EXR decode and encode | {total:.2f} | 1.00 |"]
         for q, r in oidn["quality"].items():
             out.append(f"| OIDN {oidn.get('pyoidn', '')} quality {q} | {r['seconds']:.2f} | {r['seconds'] / total:.2f} |")
+    return out
+
+
+def precision_section(speed: dict, fp32: dict) -> list[str]:
+    """Int8 against FP32 on the same frame (`--int8-models`), with both GEMM ceilings, and
+    whether the CPU has bf16 instructions."""
+    q = speed.get("int8")
+    out = []
+    if q:
+        g, gi, e = speed["gemm_ceiling"], q["gemm_ceiling"], q["engine"]
+        r = q["time_vs_fp32"]
+        out += ["", f"### Int8 against FP32, {e['width']}×{e['height']}", "",
+                f"The int8 model is `{q['models']}` (`make bench` quantises the default `{e['variant']}` model "
+                "with `mcdenoise_train.quantize --ops all`: u8 activations, s8 per-channel weights, every operator "
+                "quantised, the kernel and blend heads in float). Int8 GEMM is u8 × s8 into int32 "
+                "(MatMulInteger), a multiply and an add counted as two operations.", "",
+                "| measure | FP32 | int8 | int8 / FP32 |", "|---|---|---|---|",
+                f"| GEMM ceiling ({g['n']}³), {g['threads']} threads (G(FL)OP/s) | {g['gflops']:.1f} | {gi['gops']:.1f} "
+                f"| {gi['gops'] / g['gflops']:.2f} |",
+                f"| GEMM ceiling, 1 thread | {g['gflops_1_thread']:.1f} | {gi['gops_1_thread']:.1f} "
+                f"| {gi['gops_1_thread'] / g['gflops_1_thread']:.2f} |",
+                f"| ONNX Runtime alone (s) | {fp32['ort_alone_s']:.3f} | {e['ort_alone_s']:.3f} | {r['ort_alone']:.2f} |",
+                f"| ONNX Runtime alone, share of its own ceiling | {100 * fp32['ort_alone_vs_gemm_ceiling']:.0f} % "
+                f"| {100 * e['ort_alone_vs_gemm_ceiling']:.0f} % | |",
+                f"| engine (s) | {fp32['engine_s']:.3f} | {e['engine_s']:.3f} | {r['engine']:.2f} |",
+                f"| with EXR decode and encode (s) | {fp32['engine_with_io_s']:.3f} | {e['engine_with_io_s']:.3f} "
+                f"| {r['engine_with_io']:.2f} |", "",
+                "The share of the int8 ceiling counts every multiply-add of the model as int8, the float heads "
+                "included. Int8 is not served: its quality loss on the validation scenes is above the 2 % the "
+                "project allows (docs/training.md, Int8)."]
+    flags = speed.get("bf16", {}).get("cpu_flags")
+    if flags is not None:
+        out += ["", "bf16: this CPU has " + (", ".join(flags) + "; bf16 execution is not measured here." if flags else
+                "no bf16 instructions (no avx512_bf16 or amx_bf16 flag), so bf16 is not measured.")]
     return out
 
 

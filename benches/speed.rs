@@ -1,5 +1,6 @@
 //! Speed benchmark (`make bench`, or `cargo bench --bench speed -- [--models DIR] [--threads N]
-//! [--tile N] [--tile-v2 N] [--runs N] [--out FILE] [--work DIR] [--quick] [--engine-only]`). Every figure is measured in the same run
+//! [--tile N] [--tile-v2 N] [--runs N] [--out FILE] [--work DIR] [--quick] [--engine-only]
+//! [--int8-models DIR]`). Every figure is measured in the same run
 //! so that the ratios between them hold even on a machine with other load:
 //!
 //! 1. the machine's ceiling: FP32 GEMM through ONNX Runtime's MatMul (benches/matmul.onnx)
@@ -9,7 +10,11 @@
 //! 3. the engine on that frame: decode, preprocess, inference, reconstruction, encode;
 //! 4. the daemon end to end (upload, queue, engine, result download) with 1, 2 and 8
 //!    concurrent HTTP clients, against the engine alone on the same frames;
-//! 5. peak resident memory of `mcdenoise run` at 720p, 1080p and 4K.
+//! 5. peak resident memory of `mcdenoise run` at 720p, 1080p and 4K;
+//! 6. with `--int8-models DIR` (int8 copies of the models, `mcdenoise_train.quantize`): the
+//!    int8 GEMM ceiling (u8 × s8 MatMulInteger, benches/matmul-int8.onnx) and stages 2–3
+//!    again with those models, against FP32 in the same run; and whether the CPU has bf16
+//!    instructions.
 //!
 //! Writes one JSON document (`--out`, default `target/bench/speed.json`) and leaves the 720p
 //! frame it used in `--work` (default `target/bench/frame-1280x720.exr`) for the OIDN
@@ -43,6 +48,8 @@ struct Args {
     quick: bool,
     /// Only the ceilings and the engine (for iterating on the engine's speed).
     engine_only: bool,
+    /// Int8 copies of the models, measured against FP32.
+    int8_models: Option<PathBuf>,
 }
 
 fn parse_args() -> Result<Args> {
@@ -56,6 +63,7 @@ fn parse_args() -> Result<Args> {
         work: PathBuf::from("target/bench"),
         quick: false,
         engine_only: false,
+        int8_models: None,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -71,6 +79,7 @@ fn parse_args() -> Result<Args> {
             "--work" => a.work = value()?.into(),
             "--quick" => a.quick = true,
             "--engine-only" => a.engine_only = true,
+            "--int8-models" => a.int8_models = Some(value()?.into()),
             other => bail!("unknown argument `{other}`"),
         }
     }
@@ -99,8 +108,8 @@ fn frame_exr(w: usize, h: usize) -> Vec<u8> {
     write_planes(w, h, named, SampleType::F32, Encoding::FAST_LOSSLESS).expect("encode synthetic frame")
 }
 
-fn engine(a: &Args) -> Result<Engine> {
-    let mut config = EngineConfig::new(&a.models);
+fn engine(a: &Args, models: &Path) -> Result<Engine> {
+    let mut config = EngineConfig::new(models);
     config.threads = a.threads;
     config.tile = a.tile;
     config.tile_v2 = a.tile_v2;
@@ -109,26 +118,61 @@ fn engine(a: &Args) -> Result<Engine> {
     Ok(e)
 }
 
-/// FP32 GEMM through ONNX Runtime (MLAS): GFLOP/s of an n×n×n MatMul, best of `runs`.
-fn gemm_ceiling(n: usize, threads: usize, runs: usize) -> Result<f64> {
+/// A GEMM's throughput through ONNX Runtime (MLAS): G(FL)OP/s of an n×n×n product of `a`
+/// and `b` by the two-input model `file` under benches/, best of `runs`.
+fn gemm_ceiling<A, B>(file: &str, a: &[A], b: &[B], n: usize, threads: usize, runs: usize) -> Result<f64>
+where
+    A: ort::value::PrimitiveTensorElementType + Clone + std::fmt::Debug + 'static,
+    B: ort::value::PrimitiveTensorElementType + Clone + std::fmt::Debug + 'static,
+{
     use ort::value::TensorRef;
     let env = runtime::environment(None).map_err(anyhow::Error::msg)?;
-    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/matmul.onnx");
+    let model = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches").join(file);
     // The engine's own session settings.
     let mut session =
         model::build_session(env, &model, model::Placement::cpu(threads)).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let a: Vec<f32> = (0..n * n).map(|i| ((i % 97) as f32) * 0.01).collect();
-    let b: Vec<f32> = (0..n * n).map(|i| ((i % 89) as f32) * 0.01).collect();
     let mut best = f64::INFINITY;
     for _ in 0..runs + 1 {
-        let ta = TensorRef::from_array_view(([n, n], &a[..]))?;
-        let tb = TensorRef::from_array_view(([n, n], &b[..]))?;
+        let ta = TensorRef::from_array_view(([n, n], a))?;
+        let tb = TensorRef::from_array_view(([n, n], b))?;
         let t = Instant::now();
         let out = session.run(ort::inputs!["A" => ta, "B" => tb])?;
         best = best.min(t.elapsed().as_secs_f64());
         drop(out);
     }
     Ok(2.0 * (n * n * n) as f64 / best / 1e9)
+}
+
+/// Runs per GEMM ceiling: the best of several, since on a shared virtual machine a single
+/// 1536³ product varies by a quarter from run to run.
+fn gemm_runs(a: &Args) -> usize {
+    if a.quick {
+        a.runs
+    } else {
+        a.runs.max(8)
+    }
+}
+
+/// FP32 GEMM (benches/matmul.onnx): GFLOP/s.
+fn gemm_f32(n: usize, threads: usize, runs: usize) -> Result<f64> {
+    let a: Vec<f32> = (0..n * n).map(|i| ((i % 97) as f32) * 0.01).collect();
+    let b: Vec<f32> = (0..n * n).map(|i| ((i % 89) as f32) * 0.01).collect();
+    gemm_ceiling("matmul.onnx", &a, &b, n, threads, runs)
+}
+
+/// Int8 GEMM, u8 × s8 into int32 as the int8 convolutions take it (benches/matmul-int8.onnx):
+/// GOP/s, a multiply and an add counted as two operations like FP32's.
+fn gemm_int8(n: usize, threads: usize, runs: usize) -> Result<f64> {
+    let a: Vec<u8> = (0..n * n).map(|i| (i % 251) as u8).collect();
+    let b: Vec<i8> = (0..n * n).map(|i| ((i % 241) as i32 - 120) as i8).collect();
+    gemm_ceiling("matmul-int8.onnx", &a, &b, n, threads, runs)
+}
+
+/// The CPU's bf16 instructions, from /proc/cpuinfo's flags.
+fn bf16_flags() -> Vec<String> {
+    let flags = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let line = flags.lines().find(|l| l.starts_with("flags")).unwrap_or("");
+    line.split_whitespace().filter(|f| f.contains("bf16")).map(str::to_string).collect()
 }
 
 struct EngineRun {
@@ -203,6 +247,31 @@ fn engine_section(a: &Args, e: &mut Engine, exr: &[u8], w: usize, h: usize, gemm
         "engine_with_io_s": total,
         "engine_with_io_vs_ort_alone": floor_s / total,
         "ort_alone_vs_gemm_ceiling": flops / floor_s / 1e9 / gemm,
+    }))
+}
+
+/// The int8 models on the same frame as the FP32 ones (`fp32`: the engine section), with the
+/// int8 GEMM ceiling measured beside the FP32 one.
+fn int8_section(a: &Args, models: &Path, exr: &[u8], w: usize, h: usize, n: usize, fp32: &Value) -> Result<Value> {
+    let ceiling = gemm_int8(n, a.threads, gemm_runs(a))?;
+    let ceiling1 = gemm_int8(n, 1, gemm_runs(a))?;
+    eprintln!("int8 GEMM ceiling {n}³: {ceiling:.1} GOP/s on {} threads, {ceiling1:.1} on 1", a.threads);
+    let mut e = engine(a, models)?;
+    let int8 = engine_section(a, &mut e, exr, w, h, ceiling)?;
+    let ratio = |key: &str| int8[key].as_f64().unwrap_or(f64::NAN) / fp32[key].as_f64().unwrap_or(f64::NAN);
+    eprintln!(
+        "int8 {w}x{h}: ORT alone {:.2}x FP32's time, engine {:.2}x, with EXR I/O {:.2}x",
+        ratio("ort_alone_s"),
+        ratio("engine_s"),
+        ratio("engine_with_io_s")
+    );
+    Ok(json!({
+        "models": models,
+        "gemm_ceiling": { "n": n, "gops": ceiling, "gops_1_thread": ceiling1, "threads": a.threads },
+        "engine": int8,
+        "time_vs_fp32": {
+            "ort_alone": ratio("ort_alone_s"), "engine": ratio("engine_s"), "engine_with_io": ratio("engine_with_io_s"),
+        },
     }))
 }
 
@@ -394,18 +463,22 @@ fn main() -> Result<()> {
         std::fs::create_dir_all(parent)?;
     }
     let n = if a.quick { 256 } else { 1536 };
-    let gemm = gemm_ceiling(n, a.threads, a.runs)?;
-    let gemm1 = gemm_ceiling(n, 1, a.runs)?;
+    let gemm = gemm_f32(n, a.threads, gemm_runs(&a))?;
+    let gemm1 = gemm_f32(n, 1, gemm_runs(&a))?;
     eprintln!("GEMM ceiling {n}³: {gemm:.1} GFLOP/s on {} threads, {gemm1:.1} on 1", a.threads);
 
     let (w, h) = if a.quick { (320, 180) } else { (1280, 720) };
     let exr = frame_exr(w, h);
     std::fs::write(dir.join(format!("frame-{w}x{h}.exr")), &exr)?;
-    let mut e = engine(&a)?;
+    let mut e = engine(&a, &a.models)?;
     let engine_json = engine_section(&a, &mut e, &exr, w, h, gemm)?;
     let daemon_json = if a.engine_only { Value::Null } else { daemon_section(&a, &mut e)? };
     drop(e);
     let memory_json = if a.engine_only { Value::Null } else { memory_section(&a, &dir)? };
+    let int8_json = match &a.int8_models {
+        Some(models) => int8_section(&a, models, &exr, w, h, n, &engine_json)?,
+        None => Value::Null,
+    };
 
     let report = json!({
         "machine": {
@@ -417,6 +490,8 @@ fn main() -> Result<()> {
         "engine": engine_json,
         "daemon": daemon_json,
         "memory": memory_json,
+        "int8": int8_json,
+        "bf16": { "cpu_flags": bf16_flags() },
     });
     std::fs::write(&a.out, serde_json::to_string_pretty(&report)? + "\n")?;
     eprintln!("wrote {}", a.out.display());

@@ -1,0 +1,41 @@
+"""benches/report.py on the quick speed benchmark that `make test` runs before these tests
+(target/bench/quick.json, with `--int8-models`): the results page shows the int8 section
+with both ceilings and the ratios to FP32 measured in that run."""
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT
+
+QUICK = ROOT / "target" / "bench" / "quick.json"
+
+
+def test_the_results_page_shows_int8_against_fp32_from_the_same_run(tmp_path):
+    if not QUICK.exists():
+        pytest.fail(f"{QUICK} is missing: `make test` writes it (cargo bench --bench speed -- --quick "
+                    "--int8-models target/bench/int8) before these tests")
+    speed = json.loads(QUICK.read_text())
+    assert speed["int8"], "the quick benchmark ran without --int8-models"
+    results = tmp_path / "results"
+    results.mkdir()
+    shutil.copy(QUICK, results / "speed.json")
+    out = tmp_path / "results.md"
+    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
+                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    page = out.read_text()
+    assert "### Int8 against FP32" in page
+    # The ceilings row: FP32 and int8 as measured, and their ratio.
+    g, gi = speed["gemm_ceiling"]["gflops"], speed["int8"]["gemm_ceiling"]["gops"]
+    row = re.search(r"\| GEMM ceiling \(\d+³\), \d+ threads \(G\(FL\)OP/s\) \| ([\d.]+) \| ([\d.]+) \| ([\d.]+) \|", page)
+    assert row, page
+    assert (float(row[1]), float(row[2])) == (round(g, 1), round(gi, 1))
+    assert float(row[3]) == pytest.approx(gi / g, abs=0.006)
+    ratio = speed["int8"]["time_vs_fp32"]["engine"]
+    assert f"| {ratio:.2f} |" in page and ratio > 0
+    assert "bf16:" in page
