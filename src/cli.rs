@@ -9,7 +9,7 @@ use clap::Args;
 use ndarray::{Array0, Array3};
 use serde_json::json;
 
-use crate::config::FireflyArgs;
+use crate::config::{AlbedoArgs, FireflyArgs};
 use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
 use crate::frame::{Buffer, ChannelMaps, Frame, Limits, Plane, PlaneRef};
 use crate::jobs::Layer;
@@ -103,6 +103,8 @@ pub struct RunArgs {
     pub variant: VariantArg,
     #[command(flatten)]
     pub fireflies: FireflyArgs,
+    #[command(flatten)]
+    pub albedo: AlbedoArgs,
     /// How the renderer's AOV names are read: `auto` (canonical names, Blender Cycles'
     /// passes, then every shipped preset), a preset's name (`arnold`, `renderman`,
     /// `karma`, `vray`, `redshift`), or the frame's own map as `key=AOVs` pairs separated
@@ -151,6 +153,9 @@ pub struct PreprocessArgs {
     /// The inputs are those `mcdenoise run` gives the networks, fireflies handled alike.
     #[command(flatten)]
     pub fireflies: FireflyArgs,
+    /// And the albedo prefiltered alike.
+    #[command(flatten)]
+    pub albedo: AlbedoArgs,
     #[command(flatten)]
     pub frame: FrameArgs,
 }
@@ -189,6 +194,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     config.ort_library = args.ort_library.clone();
     config.device = args.device;
     config.reconstruction = args.reconstruction;
+    config.albedo_prefilter = args.albedo.albedo_prefilter;
 
     let t = Instant::now();
     let mut engine = Engine::load(&config)?;
@@ -247,6 +253,7 @@ pub fn run(args: RunArgs) -> Result<()> {
             "handled": out.fireflies.total(),
             "by_component": out.fireflies,
         },
+        "albedo_prefilter": config.albedo_prefilter,
         "timings_ms": {
             "load_models": load_ms,
             "decode": timings.decode,
@@ -305,6 +312,9 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     let (handled, report) = engine::handle_fireflies(&frame, args.fireflies.settings());
     if let Some(handled) = handled {
         frame = handled;
+    }
+    if let Some(prefiltered) = engine::albedo::prefilter(&frame, args.albedo.albedo_prefilter) {
+        frame = prefiltered;
     }
     if args.variant.resolve() == Some(Variant::Beauty) {
         frame = frame.to_beauty();

@@ -13,7 +13,7 @@ use std::time::Duration;
 use anyhow::{bail, Context};
 use clap::{Args, Command};
 
-use crate::engine::{Fireflies, FireflyMode};
+use crate::engine::{AlbedoPrefilter, Fireflies, FireflyMode};
 use crate::frame::presets::{ChannelMap, ChannelMapSpec};
 use crate::frame::{ChannelMaps, Limits};
 use crate::telemetry::LogFormat;
@@ -29,6 +29,21 @@ fn parse_firefly_mode(s: &str) -> Result<FireflyMode, String> {
 fn parse_firefly_strength(s: &str) -> Result<f32, String> {
     let v: f32 = s.parse().map_err(|e| format!("{e} (a number, e.g. 1 or 0.5)"))?;
     Fireflies { mode: FireflyMode::Auto, strength: v }.validate().map(|f| f.strength)
+}
+
+fn parse_albedo_prefilter(s: &str) -> Result<AlbedoPrefilter, String> {
+    AlbedoPrefilter::parse(s).ok_or_else(|| format!("`{s}`: expected `on` or `off`"))
+}
+
+/// Albedo prefiltering (src/engine/albedo.rs), shared by `run`, `preprocess` and `serve`.
+#[derive(Args, Debug, Clone, Copy)]
+pub struct AlbedoArgs {
+    /// The albedo's noise before the networks: `on` shrinks it where the frame's albedo
+    /// variance says it is noise, which the diffuse remodulation would otherwise put back
+    /// into the output (better in defocus, worse on thin in-focus geometry);
+    /// `off` (the default) uses the albedo as the file gives it.
+    #[arg(long, env = "MCDENOISE_ALBEDO_PREFILTER", default_value = "off", value_parser = parse_albedo_prefilter)]
+    pub albedo_prefilter: AlbedoPrefilter,
 }
 
 /// Firefly handling (docs/fireflies.md), shared by `run`, `preprocess` and `serve` (where
@@ -171,6 +186,8 @@ pub struct ServeArgs {
     /// Default firefly handling of jobs that do not set `fireflies` / `firefly_strength`.
     #[command(flatten)]
     pub fireflies: FireflyArgs,
+    #[command(flatten)]
+    pub albedo: AlbedoArgs,
 
     // --- Queue and limits --------------------------------------------------------------
     /// Largest number of queued jobs (running ones excluded); beyond it submissions get
@@ -419,6 +436,7 @@ impl ServeArgs {
             "tile_v2": self.tile_v2,
             "region_pixels": self.region_pixels,
             "fireflies": self.fireflies.settings(),
+            "albedo_prefilter": self.albedo.albedo_prefilter,
             "queue_capacity": self.queue_capacity,
             "job_deadline": humantime::format_duration(self.job_deadline).to_string(),
             "result_ttl": humantime::format_duration(self.result_ttl).to_string(),

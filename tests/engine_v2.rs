@@ -9,7 +9,8 @@ use std::path::Path;
 
 use common::*;
 use mcdenoise::engine::{
-    synthetic_frame, Engine, EngineConfig, FeatureSet, InputCompression, Outputs, Reconstruction, Variant,
+    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, Outputs,
+    Reconstruction, Variant,
 };
 use model_dirs::*;
 
@@ -291,6 +292,19 @@ fn frames_without_the_split_go_to_the_beauty_variant() {
         assert_eq!(named.color[c], auto.color[c]);
         assert_eq!(named.color[c], direct.color[c]);
     }
+    // With the albedo prefilter, those of the beauty-only frame of the prefiltered split
+    // (a beauty-only frame carries no albedo variance).
+    let mut config = EngineConfig::new(tmp.path());
+    (config.tile, config.tile_v2, config.threads) = (0, 0, 2);
+    config.albedo_prefilter = AlbedoPrefilter::On;
+    let mut on = Engine::load(&config).unwrap();
+    let named = on.denoise(&split, Some(Variant::Beauty), &mut |_| true).unwrap();
+    let prefiltered = albedo::prefilter(&split, AlbedoPrefilter::On).expect("the frame has an albedo variance");
+    let direct = on.denoise(&prefiltered.to_beauty(), Some(Variant::Nocov), &mut |_| true).unwrap();
+    for c in 0..3 {
+        assert_eq!(named.color[c], direct.color[c]);
+    }
+    assert_ne!(named.color[0], auto.color[0], "the prefilter changed the albedo");
     // Without a `beauty` model, `nocov` takes such frames.
     let mut e = engine_at(&tiny_v2(), 0);
     assert_eq!(e.denoise(&beauty, None, &mut |_| true).unwrap().variant, Variant::Nocov);

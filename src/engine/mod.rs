@@ -11,6 +11,7 @@
 //! kernels at several scales: [`multiscale`]); for the latter, tiles and halos are aligned to
 //! its pooling grid and regions padded to it, so that tiles see the frame's grid.
 
+pub mod albedo;
 mod compress;
 pub mod contract;
 pub mod device;
@@ -26,6 +27,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
+pub use albedo::AlbedoPrefilter;
 pub use contract::{Component, FeatureSet, InputCompression, Outputs, Reconstruction, Variant};
 pub use device::Device;
 pub use fireflies::{Fireflies, FireflyMode};
@@ -75,6 +77,8 @@ pub struct EngineConfig {
     /// Where contract-v2 kernels are applied ([`Reconstruction`]; `auto`: in the graph on a
     /// GPU where the variant has `model-recon.onnx`).
     pub reconstruction: Reconstruction,
+    /// Whether the albedo is prefiltered by its variance ([`albedo`]; `off` unless asked).
+    pub albedo_prefilter: AlbedoPrefilter,
 }
 
 impl EngineConfig {
@@ -88,6 +92,7 @@ impl EngineConfig {
             ort_library: None,
             device: Device::Cpu,
             reconstruction: Reconstruction::Auto,
+            albedo_prefilter: AlbedoPrefilter::Off,
         }
     }
 }
@@ -168,6 +173,7 @@ pub struct Engine {
     region_pixels: usize,
     pool: rayon::ThreadPool,
     device: Device,
+    albedo_prefilter: AlbedoPrefilter,
 }
 
 impl Engine {
@@ -191,6 +197,7 @@ impl Engine {
             region_pixels: config.region_pixels,
             pool,
             device,
+            albedo_prefilter: config.albedo_prefilter,
         })
     }
 
@@ -279,9 +286,14 @@ impl Engine {
         let t = Instant::now();
         let (handled, report) = self.pool.install(|| handle_fireflies(frame, fireflies));
         let frame = handled.as_ref().unwrap_or(frame);
+        timings.fireflies = t.elapsed();
+        let t = Instant::now();
+        let mode = self.albedo_prefilter;
+        let prefiltered = self.pool.install(|| albedo::prefilter(frame, mode));
+        let frame = prefiltered.as_ref().unwrap_or(frame);
         let beauty = (variant == Variant::Beauty).then(|| frame.to_beauty());
         let frame = beauty.as_ref().unwrap_or(frame);
-        timings.fireflies = t.elapsed();
+        timings.preprocess += t.elapsed();
 
         let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], self.region_pixels, variant, frame)?;
         let stats = FrameStats::of(frame);

@@ -67,11 +67,52 @@ def stored_as_engine(ch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-def raw_from_channels(ch: dict[str, np.ndarray]) -> tuple[np.ndarray, float, float]:
+# The engine's albedo prefilter (src/engine/albedo.rs): block side of the base, weight of
+# the variance.
+ALBEDO_BLOCK = 4
+ALBEDO_TAU = 4.0
+
+
+def _block_taps(n: int, blocks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    u = np.clip((np.arange(n, dtype=np.float32) + np.float32(0.5)) / np.float32(ALBEDO_BLOCK) - np.float32(0.5),
+                0, blocks - 1).astype(np.float32)
+    j0 = np.floor(u).astype(np.int64)
+    return j0, np.minimum(j0 + 1, blocks - 1), (u - j0).astype(np.float32)
+
+
+def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
+    """The engine's albedo prefilter (src/engine/albedo.rs, `--albedo-prefilter on`) of `albedo [3, H, W]` with the
+    variance of its pixel means `variance [H, W]`: the detail against a base (4×4 block
+    means, upsampled bilinearly with half-pixel centres) shrunk by `s = τv / (τv + d² +
+    1e-12)`, `d²` the detail's power averaged over R, G, B. Zero variance keeps a pixel."""
+    a = np.asarray(albedo, np.float32)
+    _, h, w = a.shape
+    bh, bw = -(-h // ALBEDO_BLOCK), -(-w // ALBEDO_BLOCK)
+    ph, pw = bh * ALBEDO_BLOCK - h, bw * ALBEDO_BLOCK - w
+    padded = np.pad(a.astype(np.float64), ((0, 0), (0, ph), (0, pw)))
+    counts = np.pad(np.ones((h, w)), ((0, ph), (0, pw)))
+    sums = padded.reshape(3, bh, ALBEDO_BLOCK, bw, ALBEDO_BLOCK).sum((2, 4))
+    means = (sums / counts.reshape(bh, ALBEDO_BLOCK, bw, ALBEDO_BLOCK).sum((1, 3))).astype(np.float32)
+    y0, y1, ty = _block_taps(h, bh)
+    x0, x1, tx = _block_taps(w, bw)
+    r0, r1 = means[:, y0], means[:, y1]
+    top = r0[:, :, x0] + tx * (r0[:, :, x1] - r0[:, :, x0])
+    bottom = r1[:, :, x0] + tx * (r1[:, :, x1] - r1[:, :, x0])
+    base = top + ty[:, None] * (bottom - top)
+    detail = a - base
+    power = (detail[0] * detail[0] + detail[1] * detail[1] + detail[2] * detail[2]) / np.float32(3.0)
+    v = np.asarray(variance, np.float32)
+    v = np.where(np.isfinite(v) & (v > 0), np.float32(ALBEDO_TAU) * v, np.float32(0.0))
+    shrink = np.clip(v / (v + power + np.float32(1e-12)), 0.0, 1.0)
+    return (a - shrink * detail).astype(np.float32)
+
+
+def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = False) -> tuple[np.ndarray, float, float]:
     """A frame's channels (name -> [H, W]) as a raw `[RAW_CHANNELS, H, W]` float32 array and
     its depth and covariance maxima, the auxiliary buffers rounded as the engine stores them
-    (`stored_as_engine`). Missing covariance (frames of renderers without it) and missing
-    variances are zeros."""
+    (`stored_as_engine`); with `albedo_prefilter`, the albedo prefiltered by its variance as
+    the engine does with `--albedo-prefilter on` (`prefilter_albedo`). Missing covariance
+    (frames of renderers without it) and missing variances are zeros."""
     ch = stored_as_engine(ch)
     h, w = next(iter(ch.values())).shape
     out = np.zeros((len(RAW), h, w), np.float32)
@@ -82,6 +123,8 @@ def raw_from_channels(ch: dict[str, np.ndarray]) -> tuple[np.ndarray, float, flo
         if src is not None:
             out[i] = src
     out = np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=0.0)  # half-float files overflow to inf
+    if albedo_prefilter:
+        out[ALBEDO] = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]])
     return out, float(max(out[DEPTH].max(), 0.0)), float(max(out[COV].max(), 0.0))
 
 

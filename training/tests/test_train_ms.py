@@ -14,7 +14,8 @@ from mcdenoise_train.checkpoint import load_state, save_state
 from mcdenoise_train.export_ms import read_metadata_v2
 from mcdenoise_train.exr import read_exr, write_exr
 from mcdenoise_train.frames import synthetic_frame
-from mcdenoise_train.preprocess import DIFFUSE, RAW, SPECULAR, VAR, preprocess, raw_from_channels, targets
+from mcdenoise_train.preprocess import (ALBEDO, DIFFUSE, RAW, SPECULAR, VAR, prefilter_albedo, preprocess,
+                                        raw_from_channels, targets)
 
 from test_train import make_dataset, needs_engine
 
@@ -33,6 +34,7 @@ def test_preprocessing_matches_the_engine(tmp_path, covariance):
                     "-o", str(tmp_path / "f.npz")], check=True, capture_output=True)
     engine = np.load(tmp_path / "f.npz")
     raw, dmax, cmax = raw_from_channels(read_exr(tmp_path / "f.exr"))
+    np.testing.assert_allclose(raw[ALBEDO], engine["albedo"], rtol=1e-6, atol=0, err_msg="albedo")
     t = preprocess(torch.from_numpy(raw)[None], torch.tensor([dmax]), torch.tensor([cmax]),
                    "full" if covariance else "nocov")
     for name, key in (("diffuse", "diffuse_color"), ("specular", "specular_color"), ("features", "features")):
@@ -41,6 +43,61 @@ def test_preprocessing_matches_the_engine(tmp_path, covariance):
     tg = targets(torch.from_numpy(r[DIFFUSE])[None], torch.from_numpy(r[SPECULAR])[None], t["albedo"])
     np.testing.assert_allclose(tg["diffuse_target"][0].numpy(), engine["diffuse_target"], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(tg["specular_target"][0].numpy(), engine["specular_target"], rtol=1e-5, atol=1e-6)
+
+
+@needs_engine
+def test_the_albedo_prefilter_is_the_engines(tmp_path):
+    ch = synthetic_frame(24, 20, seed=5, covariance=True)
+    ref = {k: v * 0.9 for k, v in ch.items()}
+    write_exr(tmp_path / "f.exr", ch)
+    write_exr(tmp_path / "r.exr", ref)
+    subprocess.run([BIN, "preprocess", str(tmp_path / "f.exr"), "--reference", str(tmp_path / "r.exr"), "--fireflies",
+                    "off", "--albedo-prefilter", "on", "-o", str(tmp_path / "f.npz")], check=True, capture_output=True)
+    engine = np.load(tmp_path / "f.npz")
+    raw, dmax, cmax = raw_from_channels(read_exr(tmp_path / "f.exr"), albedo_prefilter=True)
+    np.testing.assert_allclose(raw[ALBEDO], engine["albedo"], rtol=1e-5, atol=1e-6, err_msg="albedo")
+    plain = raw_from_channels(read_exr(tmp_path / "f.exr"))[0]
+    assert np.abs(raw[ALBEDO] - plain[ALBEDO]).max() > 1e-3, "the synthetic albedo is noisy with a variance"
+    # The division, the albedo features and the targets use the prefiltered albedo.
+    t = preprocess(torch.from_numpy(raw)[None], torch.tensor([dmax]), torch.tensor([cmax]), "full")
+    for name, key in (("diffuse", "diffuse_color"), ("features", "features")):
+        np.testing.assert_allclose(t[name][0].numpy(), engine[key], rtol=1e-5, atol=1e-5, err_msg=name)
+    r, _, _ = raw_from_channels(read_exr(tmp_path / "r.exr"))
+    tg = targets(torch.from_numpy(r[DIFFUSE])[None], torch.from_numpy(r[SPECULAR])[None], t["albedo"])
+    np.testing.assert_allclose(tg["diffuse_target"][0].numpy(), engine["diffuse_target"], rtol=1e-5, atol=1e-6)
+
+
+def test_the_albedo_prefilter_follows_its_method():
+    # src/engine/albedo.rs written out pixel by pixel in float64, on sides that are not
+    # multiples of the block.
+    rng = np.random.default_rng(0)
+    h, w, block, tau = 9, 11, 4, 4.0
+    a = rng.uniform(0, 1, (3, h, w)).astype(np.float32)
+    v = (rng.uniform(0, 0.05, (h, w)) * (rng.uniform(size=(h, w)) > 0.3)).astype(np.float32)
+    bh, bw = -(-h // block), -(-w // block)
+    means = np.zeros((3, bh, bw))
+    for by in range(bh):
+        for bx in range(bw):
+            means[:, by, bx] = a[:, by * block:(by + 1) * block, bx * block:(bx + 1) * block].astype(np.float64).mean((1, 2))
+
+    def taps(i, n):
+        u = min(max((i + 0.5) / block - 0.5, 0.0), n - 1)
+        j0 = int(np.floor(u))
+        return j0, min(j0 + 1, n - 1), u - j0
+
+    want = np.zeros((3, h, w))
+    for y in range(h):
+        y0, y1, ty = taps(y, bh)
+        for x in range(w):
+            x0, x1, tx = taps(x, bw)
+            base = ((1 - ty) * ((1 - tx) * means[:, y0, x0] + tx * means[:, y0, x1])
+                    + ty * ((1 - tx) * means[:, y1, x0] + tx * means[:, y1, x1]))
+            detail = a[:, y, x] - base
+            s = tau * v[y, x] / (tau * v[y, x] + (detail ** 2).mean() + 1e-12)
+            want[:, y, x] = a[:, y, x] - s * detail
+    got = prefilter_albedo(a, v)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    assert np.array_equal(got[:, v == 0], a[:, v == 0]), "zero variance keeps the albedo"
 
 
 def _raw_batch(n=3, size=33, seed=0):
