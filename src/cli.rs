@@ -313,11 +313,9 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     if let Some(handled) = handled {
         frame = handled;
     }
-    if let Some(prefiltered) = engine::albedo::prefilter(&frame, args.albedo.albedo_prefilter) {
-        frame = prefiltered;
-    }
-    if args.variant.resolve() == Some(Variant::Beauty) {
-        frame = frame.to_beauty();
+    let beauty = args.variant.resolve() == Some(Variant::Beauty);
+    if let Some(prepared) = engine::prepare(&frame, args.albedo.albedo_prefilter, beauty) {
+        frame = prepared;
     }
     let (w, h) = (frame.width, frame.height);
     let stats = engine::FrameStats::of(&frame);

@@ -32,7 +32,7 @@ fn parse_firefly_strength(s: &str) -> Result<f32, String> {
 }
 
 fn parse_albedo_prefilter(s: &str) -> Result<AlbedoPrefilter, String> {
-    AlbedoPrefilter::parse(s).ok_or_else(|| format!("`{s}`: expected `on` or `off`"))
+    s.parse()
 }
 
 /// Albedo prefiltering (src/engine/albedo.rs), shared by `run`, `preprocess` and `serve`.

@@ -51,12 +51,14 @@ pub enum AlbedoPrefilter {
     On,
 }
 
-impl AlbedoPrefilter {
-    pub fn parse(s: &str) -> Option<Self> {
+impl std::str::FromStr for AlbedoPrefilter {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<AlbedoPrefilter, String> {
         match s {
-            "on" => Some(Self::On),
-            "off" => Some(Self::Off),
-            _ => None,
+            "on" => Ok(Self::On),
+            "off" => Ok(Self::Off),
+            _ => Err(format!("unknown albedo prefilter `{s}` (expected on or off)")),
         }
     }
 }

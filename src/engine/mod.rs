@@ -289,10 +289,8 @@ impl Engine {
         timings.fireflies = t.elapsed();
         let t = Instant::now();
         let mode = self.albedo_prefilter;
-        let prefiltered = self.pool.install(|| albedo::prefilter(frame, mode));
-        let frame = prefiltered.as_ref().unwrap_or(frame);
-        let beauty = (variant == Variant::Beauty).then(|| frame.to_beauty());
-        let frame = beauty.as_ref().unwrap_or(frame);
+        let prepared = self.pool.install(|| prepare(frame, mode, variant == Variant::Beauty));
+        let frame = prepared.as_ref().unwrap_or(frame);
         timings.preprocess += t.elapsed();
 
         let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], self.region_pixels, variant, frame)?;
@@ -416,6 +414,19 @@ impl Engine {
 /// `x` with ±∞ replaced by ±`f32::MAX` and NaN by 0.
 fn saturate(x: f32) -> f32 {
     preprocess::saturate(x, f32::MAX)
+}
+
+/// The frame as the networks see it once its fireflies are handled: the albedo prefiltered
+/// ([`albedo::prefilter`] with `mode`), then, for the `beauty` variant, the beauty-only
+/// view ([`Frame::to_beauty`]). `None` when neither changes it. `Engine::denoise` and
+/// `mcdenoise preprocess` (training's inputs) both go through here, so they agree.
+pub fn prepare(frame: &Frame, mode: AlbedoPrefilter, beauty: bool) -> Option<Frame> {
+    let prefiltered = albedo::prefilter(frame, mode);
+    if beauty {
+        Some(prefiltered.as_ref().unwrap_or(frame).to_beauty())
+    } else {
+        prefiltered
+    }
 }
 
 /// Runs the firefly handling on every color buffer the networks read (diffuse, divided by
