@@ -38,11 +38,11 @@ fn parse_albedo_prefilter(s: &str) -> Result<AlbedoPrefilter, String> {
 /// Albedo prefiltering (src/engine/albedo.rs), shared by `run`, `preprocess` and `serve`.
 #[derive(Args, Debug, Clone, Copy)]
 pub struct AlbedoArgs {
-    /// The albedo's noise before the networks: `on` shrinks it where the frame's albedo
-    /// variance says it is noise, which the diffuse remodulation would otherwise put back
-    /// into the output (better in defocus, worse on thin in-focus geometry);
-    /// `off` (the default) uses the albedo as the file gives it.
-    #[arg(long, env = "MCDENOISE_ALBEDO_PREFILTER", default_value = "off", value_parser = parse_albedo_prefilter)]
+    /// The albedo's noise before the networks: `on` (the default) averages it away where
+    /// the frame's albedo variance says it is noise (non-local means), which the diffuse
+    /// remodulation would otherwise put back into the output; `off` uses the albedo as the
+    /// file gives it.
+    #[arg(long, env = "MCDENOISE_ALBEDO_PREFILTER", default_value = "on", value_parser = parse_albedo_prefilter)]
     pub albedo_prefilter: AlbedoPrefilter,
 }
 

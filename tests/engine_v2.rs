@@ -276,7 +276,12 @@ fn frames_without_the_split_go_to_the_beauty_variant() {
     }
     let nocov = read(&tiny_v2(), "nocov", "model.onnx");
     write(tmp.path(), "beauty", "model.onnx", &set_meta(&nocov, "mcdenoise.variant", "beauty"));
-    let mut e = engine_at(tmp.path(), 0);
+    // First without the albedo prefilter, which a beauty-only frame (no albedo variance)
+    // never gets.
+    let mut config = EngineConfig::new(tmp.path());
+    (config.tile, config.tile_v2, config.threads) = (0, 0, 2);
+    config.albedo_prefilter = AlbedoPrefilter::Off;
+    let mut e = Engine::load(&config).unwrap();
     assert_eq!(e.variants(), vec![Variant::Beauty, Variant::Full, Variant::Nocov]);
 
     let split = synthetic_frame(40, 36, true);
@@ -292,12 +297,9 @@ fn frames_without_the_split_go_to_the_beauty_variant() {
         assert_eq!(named.color[c], auto.color[c]);
         assert_eq!(named.color[c], direct.color[c]);
     }
-    // With the albedo prefilter, those of the beauty-only frame of the prefiltered split
-    // (a beauty-only frame carries no albedo variance).
-    let mut config = EngineConfig::new(tmp.path());
-    (config.tile, config.tile_v2, config.threads) = (0, 0, 2);
-    config.albedo_prefilter = AlbedoPrefilter::On;
-    let mut on = Engine::load(&config).unwrap();
+    // With the albedo prefilter (the default), those of the beauty-only frame of the
+    // prefiltered split.
+    let mut on = engine_at(tmp.path(), 0);
     let named = on.denoise(&split, Some(Variant::Beauty), &mut |_| true).unwrap();
     let prefiltered = albedo::prefilter(&split, AlbedoPrefilter::On).expect("the frame has an albedo variance");
     let direct = on.denoise(&prefiltered.to_beauty(), Some(Variant::Nocov), &mut |_| true).unwrap();

@@ -77,7 +77,7 @@ pub struct EngineConfig {
     /// Where contract-v2 kernels are applied ([`Reconstruction`]; `auto`: in the graph on a
     /// GPU where the variant has `model-recon.onnx`).
     pub reconstruction: Reconstruction,
-    /// Whether the albedo is prefiltered by its variance ([`albedo`]; `off` unless asked).
+    /// Whether the albedo is prefiltered by its variance ([`albedo`]; `on` unless turned off).
     pub albedo_prefilter: AlbedoPrefilter,
 }
 
@@ -92,7 +92,7 @@ impl EngineConfig {
             ort_library: None,
             device: Device::Cpu,
             reconstruction: Reconstruction::Auto,
-            albedo_prefilter: AlbedoPrefilter::Off,
+            albedo_prefilter: AlbedoPrefilter::On,
         }
     }
 }

@@ -67,51 +67,55 @@ def stored_as_engine(ch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-# The engine's albedo prefilter (src/engine/albedo.rs): block side of the base, weight of
-# the variance.
-ALBEDO_BLOCK = 4
-ALBEDO_TAU = 4.0
-
-
-def _block_taps(n: int, blocks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    u = np.clip((np.arange(n, dtype=np.float32) + np.float32(0.5)) / np.float32(ALBEDO_BLOCK) - np.float32(0.5),
-                0, blocks - 1).astype(np.float32)
-    j0 = np.floor(u).astype(np.int64)
-    return j0, np.minimum(j0 + 1, blocks - 1), (u - j0).astype(np.float32)
+# The engine's albedo prefilter (src/engine/albedo.rs): window and patch radii, distance
+# scale, the share of the variance subtracted, and the floor of the normalisation.
+ALBEDO_RADIUS = 3
+ALBEDO_PATCH = 1
+ALBEDO_K = 0.7
+ALBEDO_ALPHA = 1.0
+ALBEDO_EPS = 1e-10
+ALBEDO_MAX_REFLECTANCE = 1.0
 
 
 def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
-    """The engine's albedo prefilter (src/engine/albedo.rs, `--albedo-prefilter on`) of `albedo [3, H, W]` with the
-    variance of its pixel means `variance [H, W]`: the detail against a base (4×4 block
-    means, upsampled bilinearly with half-pixel centres) shrunk by `s = τv / (τv + d² +
-    1e-12)`, `d²` the detail's power averaged over R, G, B. Zero variance keeps a pixel."""
+    """The engine's albedo prefilter (src/engine/albedo.rs, `--albedo-prefilter on`) of
+    `albedo [3, H, W]` with the variance of its pixel means `variance [H, W]`: non-local
+    means over a 7×7 window with 3×3 patches, the pair distance `(mean_c (a_p − a_q)² −
+    α (v_p + min(v_p, v_q))) / (ε + k² (v_p + v_q))`, the weight `exp(−max(patch mean, 0))`,
+    coordinates clamped to the frame. A pixel above 1 in a channel (an emitter's strength in
+    the albedo pass) keeps its value and weighs nothing in its neighbours' means."""
     a = np.asarray(albedo, np.float32)
     _, h, w = a.shape
-    bh, bw = -(-h // ALBEDO_BLOCK), -(-w // ALBEDO_BLOCK)
-    ph, pw = bh * ALBEDO_BLOCK - h, bw * ALBEDO_BLOCK - w
-    padded = np.pad(a.astype(np.float64), ((0, 0), (0, ph), (0, pw)))
-    counts = np.pad(np.ones((h, w)), ((0, ph), (0, pw)))
-    sums = padded.reshape(3, bh, ALBEDO_BLOCK, bw, ALBEDO_BLOCK).sum((2, 4))
-    means = (sums / counts.reshape(bh, ALBEDO_BLOCK, bw, ALBEDO_BLOCK).sum((1, 3))).astype(np.float32)
-    y0, y1, ty = _block_taps(h, bh)
-    x0, x1, tx = _block_taps(w, bw)
-    r0, r1 = means[:, y0], means[:, y1]
-    top = r0[:, :, x0] + tx * (r0[:, :, x1] - r0[:, :, x0])
-    bottom = r1[:, :, x0] + tx * (r1[:, :, x1] - r1[:, :, x0])
-    base = top + ty[:, None] * (bottom - top)
-    detail = a - base
-    power = (detail[0] * detail[0] + detail[1] * detail[1] + detail[2] * detail[2]) / np.float32(3.0)
     v = np.asarray(variance, np.float32)
-    v = np.where(np.isfinite(v) & (v > 0), np.float32(ALBEDO_TAU) * v, np.float32(0.0))
-    shrink = np.clip(v / (v + power + np.float32(1e-12)), 0.0, 1.0)
-    return (a - shrink * detail).astype(np.float32)
+    v = np.where(np.isfinite(v) & (v > 0), v, np.float32(0.0))
+    r, f = ALBEDO_RADIUS, ALBEDO_PATCH
+    reflectance = (a <= np.float32(ALBEDO_MAX_REFLECTANCE)).all(0)
+    ap = np.pad(a, ((0, 0), (r, r), (r, r)), mode="edge")
+    rp = np.pad(reflectance, r, mode="edge")
+    vp = np.pad(v, r, mode="edge")
+    k2 = np.float32(ALBEDO_K * ALBEDO_K)
+    num = np.zeros_like(a)
+    den = np.zeros_like(v)
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            aq = ap[:, r + dy:r + dy + h, r + dx:r + dx + w]
+            vq = vp[r + dy:r + dy + h, r + dx:r + dx + w]
+            diff = ((a - aq) ** 2).sum(0) / np.float32(3.0)
+            d = (diff - np.float32(ALBEDO_ALPHA) * (v + np.minimum(v, vq))) / (np.float32(ALBEDO_EPS) + k2 * (v + vq))
+            dp = np.pad(d, f, mode="edge")
+            patch = sum(dp[i:i + h, j:j + w] for i in range(2 * f + 1) for j in range(2 * f + 1))
+            weight = np.exp(-np.maximum(patch / np.float32((2 * f + 1) ** 2), 0)).astype(np.float32)
+            weight *= rp[r + dy:r + dy + h, r + dx:r + dx + w]
+            num += weight * aq
+            den += weight
+    return np.where(reflectance, num / np.where(reflectance, den, 1), a).astype(np.float32)
 
 
-def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = False) -> tuple[np.ndarray, float, float]:
+def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) -> tuple[np.ndarray, float, float]:
     """A frame's channels (name -> [H, W]) as a raw `[RAW_CHANNELS, H, W]` float32 array and
     its depth and covariance maxima, the auxiliary buffers rounded as the engine stores them
-    (`stored_as_engine`); with `albedo_prefilter`, the albedo prefiltered by its variance as
-    the engine does with `--albedo-prefilter on` (`prefilter_albedo`). Missing covariance
+    (`stored_as_engine`) and the albedo prefiltered by its variance as the engine does by
+    default (`prefilter_albedo`; `albedo_prefilter=False`: as `--albedo-prefilter off`). Missing covariance
     (frames of renderers without it) and missing variances are zeros."""
     ch = stored_as_engine(ch)
     h, w = next(iter(ch.values())).shape

@@ -63,15 +63,16 @@ COV_FEATURES = [i for i in range(len(FEATURES_FULL)) if i not in NOCOV_INDICES]
 # ----- data ---------------------------------------------------------------------------
 
 
-def load_raw(record: dict, cache: Path | None) -> dict[str, np.ndarray | float]:
-    """One record's raw noisy buffers, reference diffuse/specular and frame maxima (cached
+def load_raw(record: dict, cache: Path | None, albedo_prefilter: bool = True) -> dict[str, np.ndarray | float]:
+    """One record's raw noisy buffers (the albedo prefiltered as the engine does by default,
+    unless `albedo_prefilter` is false), reference diffuse/specular and frame maxima (cached
     as .npz beside the data when `cache` is given)."""
     if cache is not None:
-        p = cache / (Path(record["noisy"]).stem + ".npz")
+        p = cache / (Path(record["noisy"]).stem + ("" if albedo_prefilter else "-albedo-off") + ".npz")
         if p.exists() and p.stat().st_mtime >= max(os.path.getmtime(record["noisy"]), os.path.getmtime(record["reference"])):
             with np.load(p) as z:
                 return {k: z[k] for k in z.files}
-    raw, dmax, cmax = raw_from_channels(read_exr(record["noisy"]))
+    raw, dmax, cmax = raw_from_channels(read_exr(record["noisy"]), albedo_prefilter=albedo_prefilter)
     ref = read_exr(record["reference"])
     refs = np.stack([ref[f"{b}.{c}"] for b in ("diffuse", "specular") for c in "RGB"]).astype(np.float32)
     out = {"raw": raw, "ref": np.nan_to_num(refs), "maxima": np.array([dmax, cmax], np.float32)}
@@ -108,8 +109,9 @@ class FrameSet:
     beside the training), cut to the set's size like the first ones."""
 
     def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None,
-                 cache: bool = False):
+                 cache: bool = False, albedo_prefilter: bool = True):
         self.dirs, self.split, self.device, self.limit, self.cache = dirs, split, device, limit, cache
+        self.albedo_prefilter = albedo_prefilter
         self.loaded: set[str] = set()  # noisy frame paths
         self.names, self.spp, self.scenes = [], [], []
         self.raw = self.ref = self.maxima = None
@@ -127,7 +129,8 @@ class FrameSet:
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
-            arrays = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if self.cache else None), recs))
+            arrays = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if self.cache else None,
+                                                    self.albedo_prefilter), recs))
         for (r, _), a in zip(recs, arrays):
             a["meta"] = (Path(r["noisy"]).stem, int(r.get("spp", 0)), str(r.get("scene", "")))
             self.loaded.add(r["noisy"])
@@ -341,6 +344,8 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--l1", type=float, default=1.0, help="weight of L1 on log(1 + color)")
     p.add_argument("--ssim", type=float, default=0.0, help="weight of DSSIM of the final color")
     p.add_argument("--perceptual", type=float, default=0.0)
+    p.add_argument("--albedo-prefilter", choices=("on", "off"), default="on",
+                   help="prefilter the albedo as the engine does (`mcdenoise run --albedo-prefilter`, on by default)")
     p.add_argument("--val-every", type=int, default=500)
     p.add_argument("--val-frames", type=int, default=None)
     p.add_argument("--raw-cache", action="store_true",
@@ -397,8 +402,9 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     t_load = time.time()
-    train = FrameSet(a.data, "train", dev, cache=a.raw_cache)
-    val = FrameSet(a.data, "val", dev, a.val_frames, cache=a.raw_cache)
+    prefilter = a.albedo_prefilter == "on"
+    train = FrameSet(a.data, "train", dev, cache=a.raw_cache, albedo_prefilter=prefilter)
+    val = FrameSet(a.data, "val", dev, a.val_frames, cache=a.raw_cache, albedo_prefilter=prefilter)
     if not len(train):
         raise SystemExit(f"{a.data}: no training frames")
     if min(train.raw.shape[-2:]) < a.patch + 1:

@@ -29,11 +29,12 @@ def test_preprocessing_matches_the_engine(tmp_path, covariance):
     ref = {k: v * 0.9 for k, v in ch.items()}
     write_exr(tmp_path / "f.exr", ch)
     write_exr(tmp_path / "r.exr", ref)
-    # The firefly stage is the engine's own (off here): this compares the transforms.
+    # The firefly stage and the albedo prefilter are the engine's own (off here, tested
+    # below): this compares the transforms.
     subprocess.run([BIN, "preprocess", str(tmp_path / "f.exr"), "--reference", str(tmp_path / "r.exr"), "--fireflies", "off",
-                    "-o", str(tmp_path / "f.npz")], check=True, capture_output=True)
+                    "--albedo-prefilter", "off", "-o", str(tmp_path / "f.npz")], check=True, capture_output=True)
     engine = np.load(tmp_path / "f.npz")
-    raw, dmax, cmax = raw_from_channels(read_exr(tmp_path / "f.exr"))
+    raw, dmax, cmax = raw_from_channels(read_exr(tmp_path / "f.exr"), albedo_prefilter=False)
     np.testing.assert_allclose(raw[ALBEDO], engine["albedo"], rtol=1e-6, atol=0, err_msg="albedo")
     t = preprocess(torch.from_numpy(raw)[None], torch.tensor([dmax]), torch.tensor([cmax]),
                    "full" if covariance else "nocov")
@@ -51,12 +52,13 @@ def test_the_albedo_prefilter_is_the_engines(tmp_path):
     ref = {k: v * 0.9 for k, v in ch.items()}
     write_exr(tmp_path / "f.exr", ch)
     write_exr(tmp_path / "r.exr", ref)
+    # Both sides prefilter by default.
     subprocess.run([BIN, "preprocess", str(tmp_path / "f.exr"), "--reference", str(tmp_path / "r.exr"), "--fireflies",
-                    "off", "--albedo-prefilter", "on", "-o", str(tmp_path / "f.npz")], check=True, capture_output=True)
+                    "off", "-o", str(tmp_path / "f.npz")], check=True, capture_output=True)
     engine = np.load(tmp_path / "f.npz")
-    raw, dmax, cmax = raw_from_channels(read_exr(tmp_path / "f.exr"), albedo_prefilter=True)
+    raw, dmax, cmax = raw_from_channels(read_exr(tmp_path / "f.exr"))
     np.testing.assert_allclose(raw[ALBEDO], engine["albedo"], rtol=1e-5, atol=1e-6, err_msg="albedo")
-    plain = raw_from_channels(read_exr(tmp_path / "f.exr"))[0]
+    plain = raw_from_channels(read_exr(tmp_path / "f.exr"), albedo_prefilter=False)[0]
     assert np.abs(raw[ALBEDO] - plain[ALBEDO]).max() > 1e-3, "the synthetic albedo is noisy with a variance"
     # The division, the albedo features and the targets use the prefiltered albedo.
     t = preprocess(torch.from_numpy(raw)[None], torch.tensor([dmax]), torch.tensor([cmax]), "full")
@@ -68,36 +70,41 @@ def test_the_albedo_prefilter_is_the_engines(tmp_path):
 
 
 def test_the_albedo_prefilter_follows_its_method():
-    # src/engine/albedo.rs written out pixel by pixel in float64, on sides that are not
-    # multiples of the block.
+    # src/engine/albedo.rs written out pixel by pixel in float64, on a frame smaller than
+    # the window in one direction so that clamping matters.
     rng = np.random.default_rng(0)
-    h, w, block, tau = 9, 11, 4, 4.0
+    h, w, r, f, k = 9, 6, 3, 1, 0.7
     a = rng.uniform(0, 1, (3, h, w)).astype(np.float32)
+    a[:, :, 4] = a[:, :, 3]  # equal pixels without variance
     v = (rng.uniform(0, 0.05, (h, w)) * (rng.uniform(size=(h, w)) > 0.3)).astype(np.float32)
-    bh, bw = -(-h // block), -(-w // block)
-    means = np.zeros((3, bh, bw))
-    for by in range(bh):
-        for bx in range(bw):
-            means[:, by, bx] = a[:, by * block:(by + 1) * block, bx * block:(bx + 1) * block].astype(np.float64).mean((1, 2))
+    v[:, 3:5] = 0
+    a[:, 2, 1] = (40.0, 70.0, 50.0)  # an emitter's strength in the albedo pass
+    v[2, 1] = 500.0
+    cl = lambda i, n: min(max(i, 0), n - 1)
 
-    def taps(i, n):
-        u = min(max((i + 0.5) / block - 0.5, 0.0), n - 1)
-        j0 = int(np.floor(u))
-        return j0, min(j0 + 1, n - 1), u - j0
+    def d(py, px, qy, qx):
+        diff = ((a[:, py, px].astype(np.float64) - a[:, qy, qx]) ** 2).mean()
+        vp, vq = float(v[py, px]), float(v[qy, qx])
+        return (diff - (vp + min(vp, vq))) / (1e-10 + k * k * (vp + vq))
 
     want = np.zeros((3, h, w))
     for y in range(h):
-        y0, y1, ty = taps(y, bh)
         for x in range(w):
-            x0, x1, tx = taps(x, bw)
-            base = ((1 - ty) * ((1 - tx) * means[:, y0, x0] + tx * means[:, y0, x1])
-                    + ty * ((1 - tx) * means[:, y1, x0] + tx * means[:, y1, x1]))
-            detail = a[:, y, x] - base
-            s = tau * v[y, x] / (tau * v[y, x] + (detail ** 2).mean() + 1e-12)
-            want[:, y, x] = a[:, y, x] - s * detail
+            num, den = np.zeros(3), 0.0
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    patch = np.mean([d(cl(y + i, h), cl(x + j, w), cl(cl(y + i, h) + dy, h), cl(cl(x + j, w) + dx, w))
+                                     for i in range(-f, f + 1) for j in range(-f, f + 1)])
+                    weight = np.exp(-max(patch, 0.0)) * float((a[:, cl(y + dy, h), cl(x + dx, w)] <= 1).all())
+                    num += weight * a[:, cl(y + dy, h), cl(x + dx, w)]
+                    den += weight
+            want[:, y, x] = num / den if (a[:, y, x] <= 1).all() else a[:, y, x]
     got = prefilter_albedo(a, v)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
-    assert np.array_equal(got[:, v == 0], a[:, v == 0]), "zero variance keeps the albedo"
+    assert np.abs(got - a).max() > 1e-2, "noisy pixels move"
+    others = (a <= 1).all(0)
+    assert got[:, others].max() <= 1, "the emitter pulls no neighbour"
+    assert np.array_equal(got[:, 2, 1], a[:, 2, 1]), "and keeps its value"
 
 
 def _raw_batch(n=3, size=33, seed=0):
