@@ -58,3 +58,21 @@ def test_a_frame_set_takes_the_scenes_completed_since(tmp_path):
     assert len(fs) == 7 and fs.raw.shape == (7, 20, 16, 16) and fs.ref.shape[0] == fs.maxima.shape[0] == 7
     assert fs.names.count("b") == 6 and "c" not in fs.names
     assert fs.refresh() == 0 and len(fs) == 7
+
+
+def test_training_frames_have_the_albedo_the_engine_gives_the_networks(tmp_path):
+    """load_raw prefilters the albedo as the engine does by default, or not with
+    --albedo-prefilter off; the two are cached apart."""
+    from mcdenoise_train.preprocess import ALBEDO, VAR, prefilter_albedo
+    from mcdenoise_train.train_ms import load_raw, parse
+
+    _write(tmp_path, "a", 16, 16, 1)
+    rec = {"noisy": str(tmp_path / "a.exr"), "reference": str(tmp_path / "a-ref.exr")}
+    cache = tmp_path / "raw-cache"
+    on, off = load_raw(rec, cache), load_raw(rec, cache, albedo_prefilter=False)
+    np.testing.assert_allclose(on["raw"][ALBEDO], prefilter_albedo(off["raw"][ALBEDO], off["raw"][VAR["albedo"]]), rtol=1e-6)
+    assert np.abs(on["raw"][ALBEDO] - off["raw"][ALBEDO]).max() > 1e-3
+    assert sorted(p.name for p in cache.iterdir()) == ["a-albedo-off.npz", "a.npz"]
+    assert np.array_equal(load_raw(rec, cache)["raw"], on["raw"]), "read back from its own cache file"
+    assert parse(["--data", "x", "--out", "y"]).albedo_prefilter == "on"
+    assert parse(["--data", "x", "--out", "y", "--albedo-prefilter", "off"]).albedo_prefilter == "off"
