@@ -46,7 +46,7 @@
 use rayon::prelude::*;
 
 use super::preprocess::luminance;
-use crate::frame::{Buffer, Frame, Plane};
+use crate::frame::{Buffer, Frame, Plane, PlaneRef};
 
 /// Radius of the search window (7 × 7).
 pub const RADIUS: usize = 3;
@@ -101,29 +101,27 @@ pub fn prefilter(frame: &Frame, mode: AlbedoPrefilter) -> Option<Frame> {
     let variance: Vec<f32> = match planes.as_slice() {
         [mono] => mono.to_vec(),
         _ => {
-            let [vr, vg, vb] = frame.rgb(Buffer::AlbedoVariance).map(|p| p.to_vec());
-            (0..w * h).map(|i| luminance(vr[i], vg[i], vb[i])).collect()
+            let [vr, vg, vb] = frame.rgb(Buffer::AlbedoVariance);
+            (0..w * h).map(|i| luminance(vr.get(i), vg.get(i), vb.get(i))).collect()
         }
     };
-    let albedo: [Plane; 3] = std::array::from_fn(|c| frame.plane(Buffer::Albedo, c).to_vec());
-    let filtered = nl_means(&albedo, &variance, w, h);
+    let filtered = nl_means(frame.rgb(Buffer::Albedo), variance, w, h);
+    // A clone shares the frame's buffers; the albedo is replaced, not copied.
     let mut out = frame.clone();
-    for (plane, f) in out.planes_mut(Buffer::Albedo).iter_mut().zip(filtered) {
-        *plane = f;
-    }
+    out.set_planes(Buffer::Albedo, filtered.into());
     Some(out)
 }
 
-/// The method of the module doc on planes of `w × h`.
-pub fn nl_means(albedo: &[Plane; 3], variance: &[f32], w: usize, h: usize) -> [Plane; 3] {
-    let frame = Planes {
-        albedo,
-        variance: variance.iter().map(|&v| if v.is_finite() && v > 0.0 { v } else { 0.0 }).collect(),
-        // 1 for a reflectance, 0 for what is not (NaN included); a weight factor.
-        reflectance: (0..w * h).map(|i| f32::from(u8::from(albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE)))).collect(),
-        w,
-        h,
-    };
+/// The method of the module doc on planes of `w × h` (`variance` is cleaned in place:
+/// non-finite and negative values become 0). Beyond its output and `variance` it holds only
+/// each band's rows, so that a 4K frame costs little memory.
+pub fn nl_means(albedo: [PlaneRef<'_>; 3], mut variance: Vec<f32>, w: usize, h: usize) -> [Plane; 3] {
+    for v in &mut variance {
+        if !(v.is_finite() && *v > 0.0) {
+            *v = 0.0;
+        }
+    }
+    let frame = Planes { albedo, variance, w, h };
     let band_filter = band_filter();
     let mut out: [Plane; 3] = std::array::from_fn(|_| vec![0f32; w * h]);
     let [r, g, b] = &mut out;
@@ -142,9 +140,8 @@ const BAND: usize = 32;
 
 /// The frame's planes as the filter reads them.
 struct Planes<'a> {
-    albedo: &'a [Plane; 3],
+    albedo: [PlaneRef<'a>; 3],
     variance: Vec<f32>,
-    reflectance: Vec<f32>,
     w: usize,
     h: usize,
 }
@@ -216,9 +213,23 @@ fn exp_nonpositive(x: f32) -> f32 {
 /// Rows `y0 ..` of the output (as many as `out` holds) for every offset of the window.
 #[inline(always)]
 fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
-    let Planes { albedo, variance: v, reflectance, w, h } = planes;
+    let Planes { albedo, variance, w, h } = planes;
     let (w, h) = (*w, *h);
     let rows = out[0].len() / w;
+    // The rows the band reads, as f32: its own, the patch margin and the window's reach.
+    let reach = PATCH + RADIUS;
+    let (lo, hi) = (y0.saturating_sub(reach), (y0 + rows + reach).min(h));
+    let albedo: [Vec<f32>; 3] = std::array::from_fn(|c| {
+        let mut rows = vec![0f32; (hi - lo) * w];
+        albedo[c].read(lo * w, &mut rows);
+        rows
+    });
+    // 1 for a reflectance, 0 for what is not (NaN included); a weight factor.
+    let reflectance: Vec<f32> = (0..(hi - lo) * w)
+        .map(|i| f32::from(u8::from(albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE))))
+        .collect();
+    let v = &variance[lo * w..hi * w];
+    let local = |y: usize| (y - lo) * w..(y - lo + 1) * w;
     let margin = rows + 2 * PATCH;
     let clamp = |i: isize, n: usize| i.clamp(0, n as isize - 1) as usize;
     let k2 = K * K;
@@ -240,7 +251,7 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
                 let y = clamp(y0 as isize + m as isize - PATCH as isize, h);
                 let yq = clamp(y as isize + dy, h);
                 let span = m * w..(m + 1) * w;
-                let (p_row, q_row) = (y * w..(y + 1) * w, yq * w..(yq + 1) * w);
+                let (p_row, q_row) = (local(y), local(yq));
                 for c in 0..3 {
                     shifted(&albedo[c][q_row.clone()], dx, &mut aq[c][span.clone()]);
                 }
@@ -296,9 +307,10 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
             }
         }
     }
+    let first = (y0 - lo) * w;
     for (c, o) in out.into_iter().enumerate() {
         for (i, o) in o.iter_mut().enumerate() {
-            let p = y0 * w + i;
+            let p = first + i;
             *o = if reflectance[p] > 0.0 { num[c][i] / den[i] } else { albedo[c][p] };
         }
     }
@@ -326,11 +338,62 @@ mod tests {
     }
 
     #[test]
+    fn bands_give_the_method_written_out() {
+        // Three bands and a partial one, edges clamped, an emitter above 1: the method of
+        // the module doc pixel by pixel in f64.
+        let (w, h) = (11, 3 * BAND + 5);
+        let mut seed = 3;
+        let mut albedo: [Plane; 3] = std::array::from_fn(|_| (0..w * h).map(|_| lcg(&mut seed)).collect());
+        albedo[1][40 * w + 4] = 30.0;
+        let v: Vec<f32> = (0..w * h).map(|i| if i % 7 == 0 { 0.0 } else { 0.02 * lcg(&mut seed) }).collect();
+        let got = nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), v.clone(), w, h);
+        let at = |y: isize, x: isize| y.clamp(0, h as isize - 1) as usize * w + x.clamp(0, w as isize - 1) as usize;
+        let refl = |i: usize| albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE);
+        let d = |p: usize, q: usize| {
+            let diff: f64 = (0..3).map(|c| (f64::from(albedo[c][p]) - f64::from(albedo[c][q])).powi(2)).sum::<f64>() / 3.0;
+            let (vp, vq) = (f64::from(v[p]), f64::from(v[q]));
+            (diff - (vp + vp.min(vq))) / (1e-10 + f64::from(K * K) * (vp + vq))
+        };
+        let (r, f) = (RADIUS as isize, PATCH as isize);
+        for y in 0..h as isize {
+            for x in 0..w as isize {
+                let p = at(y, x);
+                let (mut num, mut den) = ([0f64; 3], 0f64);
+                for dy in -r..=r {
+                    for dx in -r..=r {
+                        let q = at(y + dy, x + dx);
+                        if !refl(q) {
+                            continue;
+                        }
+                        let mut patch = 0.0;
+                        for i in -f..=f {
+                            for j in -f..=f {
+                                let (py, px) = ((y + i).clamp(0, h as isize - 1), (x + j).clamp(0, w as isize - 1));
+                                patch += d(at(py, px), at(py + dy, px + dx));
+                            }
+                        }
+                        let weight = (-(patch / ((2 * f + 1) * (2 * f + 1)) as f64).max(0.0)).exp();
+                        for c in 0..3 {
+                            num[c] += weight * f64::from(albedo[c][q]);
+                        }
+                        den += weight;
+                    }
+                }
+                for c in 0..3 {
+                    let want = if refl(p) { num[c] / den } else { f64::from(albedo[c][p]) };
+                    let g = f64::from(got[c][p]);
+                    assert!((g - want).abs() <= 1e-5 * want.abs().max(1e-2), "({y}, {x}) channel {c}: {g}, not {want}");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn zero_variance_keeps_the_albedo_exactly() {
         let (w, h) = (13, 19);
         let mut seed = 1;
         let albedo: [Plane; 3] = std::array::from_fn(|_| (0..w * h).map(|_| lcg(&mut seed)).collect());
-        let out = nl_means(&albedo, &vec![0.0; w * h], w, h);
+        let out = nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), vec![0.0; w * h], w, h);
         assert_eq!(out, albedo);
     }
 
@@ -346,7 +409,7 @@ mod tests {
             .map(|i| if i % w == line { 0.9 } else { 0.5 } + 0.1 * (lcg(&mut seed) - 0.5))
             .collect();
         let variance = vec![0.1f32 * 0.1 / 12.0; w * h];
-        let out = nl_means(&[plane.clone(), plane.clone(), plane.clone()], &variance, w, h);
+        let out = nl_means([PlaneRef::F32(&plane), PlaneRef::F32(&plane), PlaneRef::F32(&plane)], variance, w, h);
         let err = |p: &[f32]| -> f32 {
             p.iter().enumerate().filter(|(i, _)| i % w != line).map(|(_, v)| (v - 0.5).powi(2)).sum()
         };

@@ -248,6 +248,12 @@ impl Frame {
         }
     }
 
+    /// Replaces a buffer's planes by f32 ones (e.g. a filtered copy computed from them),
+    /// without copying what it held.
+    pub fn set_planes(&mut self, buffer: Buffer, planes: Vec<Plane>) {
+        self.buffers[buffer as usize] = Some(Arc::new(Stored::F32(planes)));
+    }
+
     /// Drops a buffer (e.g. covariance, to run the no-covariance model on a full frame).
     pub fn remove(&mut self, buffer: Buffer) {
         self.buffers[buffer as usize] = None;
