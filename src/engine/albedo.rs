@@ -271,11 +271,13 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
                 // Sums across the patch's width, edges clamped.
                 let (row, sums) = (&d[span.clone()], &mut dh[span]);
                 sums.copy_from_slice(row);
-                for j in 1..=PATCH.min(w) {
-                    for (s, (l, r)) in sums[j..w - j.min(w)].iter_mut().zip(row.iter().zip(&row[2 * j..])) {
-                        *s += l + r;
+                for j in 1..=PATCH {
+                    if w > 2 * j {
+                        for (s, (l, r)) in sums[j..w - j].iter_mut().zip(row.iter().zip(&row[2 * j..])) {
+                            *s += l + r;
+                        }
                     }
-                    for x in (0..j).chain(w.saturating_sub(j).max(j)..w) {
+                    for x in (0..j.min(w)).chain(w.saturating_sub(j).max(j)..w) {
                         sums[x] += row[clamp(x as isize - j as isize, w)] + row[clamp(x as isize + j as isize, w)];
                     }
                 }
@@ -340,11 +342,18 @@ mod tests {
     #[test]
     fn bands_give_the_method_written_out() {
         // Three bands and a partial one, edges clamped, an emitter above 1: the method of
-        // the module doc pixel by pixel in f64.
-        let (w, h) = (11, 3 * BAND + 5);
+        // the module doc pixel by pixel in f64; and frames narrower than the window.
+        for (w, h) in [(11, 3 * BAND + 5), (1, 1), (1, 9), (9, 1), (2, 2), (3, 5)] {
+            written_out(w, h);
+        }
+    }
+
+    fn written_out(w: usize, h: usize) {
         let mut seed = 3;
         let mut albedo: [Plane; 3] = std::array::from_fn(|_| (0..w * h).map(|_| lcg(&mut seed)).collect());
-        albedo[1][40 * w + 4] = 30.0;
+        if h > 40 {
+            albedo[1][40 * w + 4] = 30.0;
+        }
         let v: Vec<f32> = (0..w * h).map(|i| if i % 7 == 0 { 0.0 } else { 0.02 * lcg(&mut seed) }).collect();
         let got = nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), v.clone(), w, h);
         let at = |y: isize, x: isize| y.clamp(0, h as isize - 1) as usize * w + x.clamp(0, w as isize - 1) as usize;
