@@ -46,6 +46,7 @@
 use rayon::prelude::*;
 
 use super::preprocess::luminance;
+use super::reconstruct::{exp_nonpositive, Unfused};
 use crate::frame::{Buffer, Frame, Plane, PlaneRef};
 
 /// Radius of the search window (7 × 7).
@@ -149,7 +150,8 @@ struct Planes<'a> {
 type BandFilter = fn(&Planes<'_>, usize, [&mut [f32]; 3]);
 
 /// The band filter for this CPU: the same code compiled for AVX2 with FMA where the CPU has
-/// them, chosen once at run time, as in [`super::reconstruct`].
+/// them, chosen once at run time, as in [`super::reconstruct`], whose vectorising
+/// exponential it shares.
 fn band_filter() -> BandFilter {
     #[cfg(target_arch = "x86_64")]
     {
@@ -181,33 +183,6 @@ fn shifted(row: &[f32], dx: isize, out: &mut [f32]) {
     }
     out[..lo].fill(row[0]);
     out[hi.max(lo)..].fill(row[row.len() - 1]);
-}
-
-/// `exp(x)` for `x ≤ 0`, written out so that it vectorises (the library's `expf` does not):
-/// `2^n · e^r` with `n` the nearest integer to `x / ln 2` (rounded by adding and
-/// subtracting 1.5 · 2²³, whose bits then hold `n`), `r = x − n ln 2` in two parts (Cody and
-/// Waite) and `e^r`, `|r| ≤ ½ ln 2`, from its Taylor series to the sixth power (relative
-/// error below 10⁻⁶); exactly 1 at 0 and 0 below −87.
-#[inline(always)]
-fn exp_nonpositive(x: f32) -> f32 {
-    const ROUND: f32 = 12_582_912.0;
-    const LN2_HI: f32 = 0.693_359_4;
-    const LN2_LO: f32 = -2.121_944_4e-4;
-    let xc = x.max(-87.0);
-    let shifted = xc * std::f32::consts::LOG2_E + ROUND;
-    let n = shifted - ROUND;
-    let r = (xc - n * LN2_HI) - n * LN2_LO;
-    let p = 1.0
-        + r * (1.0
-            + r * (0.5 + r * (1.0 / 6.0 + r * (1.0 / 24.0 + r * (1.0 / 120.0 + r * (1.0 / 720.0))))));
-    // n ≥ −126 here, so `n + 127` is a normal float's exponent.
-    let exponent = shifted.to_bits().wrapping_sub(ROUND.to_bits()).wrapping_add(127);
-    let scale = f32::from_bits(exponent << 23);
-    if x < -87.0 {
-        0.0
-    } else {
-        p * scale
-    }
 }
 
 /// Rows `y0 ..` of the output (as many as `out` holds) for every offset of the window.
@@ -300,7 +275,7 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
                 let (nr, ng, nb, den, q0, q1, q2, rq, sum) =
                     (&mut nr[..w], &mut ng[..w], &mut nb[..w], &mut den[..w], &q0[..w], &q1[..w], &q2[..w], &rq[..w], &sum[..w]);
                 for x in 0..w {
-                    let weight = exp_nonpositive((-sum[x] * inv_area).min(0.0)) * rq[x];
+                    let weight = exp_nonpositive::<Unfused>((-sum[x] * inv_area).min(0.0)) * rq[x];
                     nr[x] += weight * q0[x];
                     ng[x] += weight * q1[x];
                     nb[x] += weight * q2[x];
@@ -321,18 +296,6 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_exponential_is_the_librarys() {
-        assert_eq!(exp_nonpositive(0.0), 1.0);
-        assert_eq!(exp_nonpositive(-87.5), 0.0);
-        assert_eq!(exp_nonpositive(f32::NEG_INFINITY), 0.0);
-        for i in 0..=87_000 {
-            let x = -(i as f32) / 1000.0;
-            let (got, want) = (exp_nonpositive(x), x.exp());
-            assert!((got - want).abs() <= 1e-6 * want, "exp({x}) = {got}, not {want}");
-        }
-    }
 
     fn lcg(seed: &mut u64) -> f32 {
         *seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
