@@ -7,7 +7,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use crate::engine::{Denoised, Denoiser, EngineError, Fireflies, FireflyReport, Progress, Variant};
+use crate::engine::{Denoised, Denoiser, EngineError, Fireflies, FireflyReport, Options, Progress, Variant};
 use crate::frame::{Carried, Carry, ChannelMaps, Frame, FrameError, Limits, Sanitized};
 use crate::jobs::{Layer, Timings};
 use crate::preview::Rgb;
@@ -191,7 +191,10 @@ pub fn run(
 
     let span =
         tracing::info_span!("denoise", width = frame.width, height = frame.height, tiles = tracing::field::Empty);
-    let out = span.in_scope(|| denoiser.denoise(&frame, request.variant, request.fireflies, on_tile))?;
+    // The components are assembled only for a result that writes them.
+    let components = request.layers.iter().any(|l| matches!(l, Layer::Diffuse | Layer::Specular));
+    let options = Options { variant: request.variant, fireflies: request.fireflies, components };
+    let out = span.in_scope(|| denoiser.denoise(&frame, options, on_tile))?;
     span.record("tiles", out.tiles);
     drop(span);
     let colors = |f: &Frame| request.keep_colors.then(|| Rgb::new(f.width, f.height, f.color()));
@@ -221,8 +224,9 @@ pub fn run(
     for (name, value) in attributes(&*denoiser, out.variant) {
         carried.header.set_text(name, &value);
     }
-    let Denoised { width, height, variant, tiles, timings: stages, fireflies, color, diffuse, specular } = out;
-    let mut components = [(Layer::Diffuse, Some(diffuse)), (Layer::Specular, Some(specular))];
+    let Denoised { width, height, variant, tiles, timings: stages, fireflies, color, components } = out;
+    let (diffuse, specular) = components.map(|c| (c.diffuse, c.specular)).unzip();
+    let mut components = [(Layer::Diffuse, diffuse), (Layer::Specular, specular)];
     let mut denoised: Vec<(String, Vec<f32>)> = rgb_names("").into_iter().zip(color).collect();
     for layer in request.layers {
         if let Some((_, planes)) = components.iter_mut().find(|(l, _)| l == layer) {

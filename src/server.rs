@@ -20,7 +20,7 @@ use tokio_util::sync::CancellationToken;
 
 use crate::config::ServeArgs;
 use crate::engine::{
-    Denoised, Denoiser, DenoiserFactory, Engine, EngineConfig, EngineError, Fireflies, ModelInfo, Progress, Variant,
+    Denoised, Denoiser, DenoiserFactory, Engine, EngineConfig, EngineError, ModelInfo, Options, Progress,
 };
 use crate::frame::Frame;
 use crate::jobs::shared::{Change, Shared};
@@ -431,12 +431,11 @@ impl Denoiser for Slowed {
     fn denoise(
         &mut self,
         frame: &Frame,
-        variant: Option<Variant>,
-        fireflies: Fireflies,
+        options: Options,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError> {
         let delay = self.tile;
-        self.inner.denoise(frame, variant, fireflies, &mut |p| {
+        self.inner.denoise(frame, options, &mut |p| {
             std::thread::sleep(delay);
             on_tile(p)
         })

@@ -7,7 +7,7 @@ use common::*;
 use mcdenoise::engine::contract::COLOR_CHANNELS;
 use mcdenoise::engine::preprocess::{luminance, preprocess};
 use mcdenoise::engine::{
-    synthetic_frame, Engine, EngineConfig, EngineError, FeatureSet, FrameStats, Rect, Variant, EPS,
+    synthetic_frame, Engine, EngineConfig, EngineError, FeatureSet, FrameStats, Options, Rect, Variant, EPS,
 };
 use mcdenoise::frame::{layout::REQUIRED, Buffer, Frame};
 
@@ -146,7 +146,7 @@ fn output_is_finite_and_positive_where_input_is() {
     for c in 0..3 {
         assert!(out.color[c].iter().all(|v| v.is_finite() && *v >= 0.0));
         for i in 0..out.color[c].len() {
-            assert!((out.color[c][i] - out.diffuse[c][i] - out.specular[c][i]).abs() <= 1e-6);
+            assert!((out.color[c][i] - parts(&out).diffuse[c][i] - parts(&out).specular[c][i]).abs() <= 1e-6);
         }
     }
 }
@@ -290,11 +290,19 @@ fn every_magnitude_in_every_channel_gives_a_finite_output() {
                         if fireflies == Fireflies::OFF && whole_plane {
                             continue;
                         }
-                        let out = engine.denoise_with(&frame, Some(variant), fireflies, &mut |_| true).unwrap();
+                        let out = engine
+                            .denoise_with(
+                                &frame,
+                                Options { variant: Some(variant), fireflies, components: true },
+                                &mut |_| true,
+                            )
+                            .unwrap();
                         runs += 1;
-                        for (layer, planes) in
-                            [("color", &out.color), ("diffuse", &out.diffuse), ("specular", &out.specular)]
-                        {
+                        for (layer, planes) in [
+                            ("color", &out.color),
+                            ("diffuse", &parts(&out).diffuse),
+                            ("specular", &parts(&out).specular),
+                        ] {
                             for (c, p) in planes.iter().enumerate() {
                                 if let Some(bad) = p.iter().position(|v| !v.is_finite()) {
                                     panic!(

@@ -9,7 +9,7 @@ use std::path::Path;
 
 use common::*;
 use mcdenoise::engine::{
-    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, Outputs,
+    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, Options, Outputs,
     Reconstruction, Variant,
 };
 use model_dirs::*;
@@ -35,8 +35,8 @@ fn tiled_output_equals_whole_frame_output() {
             for c in 0..3 {
                 for (name, a, b) in [
                     ("color", &tiled.color[c], &whole.color[c]),
-                    ("diffuse", &tiled.diffuse[c], &whole.diffuse[c]),
-                    ("specular", &tiled.specular[c], &whole.specular[c]),
+                    ("diffuse", &parts(&tiled).diffuse[c], &parts(&whole).diffuse[c]),
+                    ("specular", &parts(&tiled).specular[c], &parts(&whole).specular[c]),
                 ] {
                     let d = max_rel_diff(a, b);
                     assert!(d <= 1e-5, "cov {cov}, tile {tile}, {name} {c}: relative difference {d}");
@@ -61,11 +61,16 @@ fn the_output_is_finite_and_the_components_add_up() {
     for c in 0..3 {
         assert!(out.color[c].iter().all(|v| v.is_finite() && *v >= 0.0));
         for i in 0..out.color[c].len() {
-            assert!((out.color[c][i] - out.diffuse[c][i] - out.specular[c][i]).abs() <= 1e-6);
+            assert!((out.color[c][i] - parts(&out).diffuse[c][i] - parts(&out).specular[c][i]).abs() <= 1e-6);
         }
     }
-    // Not the noisy input: the kernels filter.
+    // Without its components the color is assembled tile by tile: the same bits.
     let frame = synthetic_frame(45, 37, true);
+    let bare = engine_at(&tiny_v2(), 32).denoise_with(&frame, Options::default(), &mut |_| true).unwrap();
+    assert!(bare.components.is_none());
+    assert!(bare.tiles > 1);
+    assert_eq!(bare.color, out.color);
+    // Not the noisy input: the kernels filter.
     let noisy = frame.color();
     assert!(max_rel_diff(&out.color[0], &noisy[0]) > 1e-3);
 }
@@ -101,9 +106,10 @@ fn inputs_compressed_by_the_engine_give_the_graphs_output() {
         let a = graph.denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
         let b = engine.denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
         for c in 0..3 {
-            for (name, x, y) in
-                [("diffuse", &a.diffuse[c], &b.diffuse[c]), ("specular", &a.specular[c], &b.specular[c])]
-            {
+            for (name, x, y) in [
+                ("diffuse", &parts(&a).diffuse[c], &parts(&b).diffuse[c]),
+                ("specular", &parts(&a).specular[c], &parts(&b).specular[c]),
+            ] {
                 let d = max_rel_diff(x, y);
                 assert!(d <= 1e-5, "tile {tile}, {name} {c}: relative difference {d}");
             }
@@ -116,7 +122,7 @@ fn inputs_compressed_by_the_engine_give_the_graphs_output() {
     write(tmp.path(), "full", "model.onnx", &twice);
     let a = engine_at(&tiny_v2(), 0).denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
     let b = engine_at(tmp.path(), 0).denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
-    assert!(max_rel_diff(&a.diffuse[0], &b.diffuse[0]) > 1e-3);
+    assert!(max_rel_diff(&parts(&a).diffuse[0], &parts(&b).diffuse[0]) > 1e-3);
     // Without the key, the graph compresses (models exported before it existed).
     let tmp = tempfile::tempdir().unwrap();
     let absent =
@@ -152,8 +158,8 @@ fn the_reconstruction_in_the_graph_gives_the_engines_output() {
             for c in 0..3 {
                 for (name, x, y) in [
                     ("color", &a.color[c], &b.color[c]),
-                    ("diffuse", &a.diffuse[c], &b.diffuse[c]),
-                    ("specular", &a.specular[c], &b.specular[c]),
+                    ("diffuse", &parts(&a).diffuse[c], &parts(&b).diffuse[c]),
+                    ("specular", &parts(&a).specular[c], &parts(&b).specular[c]),
                 ] {
                     let d = max_rel_diff(x, y);
                     assert!(d <= 1e-5, "cov {cov}, tile {tile}, {name} {c}: relative difference {d}");
@@ -288,7 +294,7 @@ fn frames_without_the_split_go_to_the_beauty_variant() {
     let beauty = split.to_beauty();
     let auto = e.denoise(&beauty, None, &mut |_| true).unwrap();
     assert_eq!(auto.variant, Variant::Beauty);
-    assert!(auto.specular.iter().flatten().all(|v| *v == 0.0));
+    assert!(parts(&auto).specular.iter().flatten().all(|v| *v == 0.0));
     assert_eq!(e.denoise(&split, None, &mut |_| true).unwrap().variant, Variant::Full);
     // Named for a frame with the split: the engine hands the network the same inputs.
     let named = e.denoise(&split, Some(Variant::Beauty), &mut |_| true).unwrap();

@@ -7,7 +7,7 @@
 use std::path::PathBuf;
 
 use mcdenoise::engine::preprocess::luminance;
-use mcdenoise::engine::{Engine, EngineConfig, Fireflies, Variant};
+use mcdenoise::engine::{Engine, EngineConfig, Fireflies, Options, Variant};
 use mcdenoise::frame::{Buffer, Frame, Limits};
 use mcdenoise::quality::relmse;
 
@@ -109,7 +109,7 @@ fn error_of(
     reference: &Frame,
     fireflies: Fireflies,
 ) -> (f64, u64) {
-    let out = engine.denoise_with(frame, variant, fireflies, &mut |_| true).unwrap();
+    let out = engine.denoise_with(frame, Options { variant, fireflies, components: false }, &mut |_| true).unwrap();
     let r = reference.color();
     (relmse([&out.color[0], &out.color[1], &out.color[2]], [&r[0], &r[1], &r[2]]), out.fireflies.total())
 }

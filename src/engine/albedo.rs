@@ -200,9 +200,8 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
         rows
     });
     // 1 for a reflectance, 0 for what is not (NaN included); a weight factor.
-    let reflectance: Vec<f32> = (0..(hi - lo) * w)
-        .map(|i| f32::from(u8::from(albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE))))
-        .collect();
+    let reflectance: Vec<f32> =
+        (0..(hi - lo) * w).map(|i| f32::from(u8::from(albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE)))).collect();
     let v = &variance[lo * w..hi * w];
     let local = |y: usize| (y - lo) * w..(y - lo + 1) * w;
     let margin = rows + 2 * PATCH;
@@ -236,7 +235,8 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
                 let (q0, q1, q2) = (&aq[0][span.clone()], &aq[1][span.clone()], &aq[2][span.clone()]);
                 let (vp, vqs) = (&v[p_row], &vq[span.clone()]);
                 let row = &mut d[span.clone()];
-                let (a0, a1, a2, q0, q1, q2, vp, vqs) = (&a0[..w], &a1[..w], &a2[..w], &q0[..w], &q1[..w], &q2[..w], &vp[..w], &vqs[..w]);
+                let (a0, a1, a2, q0, q1, q2, vp, vqs) =
+                    (&a0[..w], &a1[..w], &a2[..w], &q0[..w], &q1[..w], &q2[..w], &vp[..w], &vqs[..w]);
                 for x in 0..w {
                     let (e0, e1, e2) = (a0[x] - q0[x], a1[x] - q1[x], a2[x] - q2[x]);
                     let diff = (e0 * e0 + e1 * e1 + e2 * e2) * (1.0 / 3.0);
@@ -269,11 +269,24 @@ fn filter_band(planes: &Planes<'_>, y0: usize, out: [&mut [f32]; 3]) {
                     }
                 }
                 let [nr, ng, nb] = &mut num;
-                let (nr, ng, nb, den) =
-                    (&mut nr[out_span.clone()], &mut ng[out_span.clone()], &mut nb[out_span.clone()], &mut den[out_span]);
+                let (nr, ng, nb, den) = (
+                    &mut nr[out_span.clone()],
+                    &mut ng[out_span.clone()],
+                    &mut nb[out_span.clone()],
+                    &mut den[out_span],
+                );
                 let (q0, q1, q2, rq) = (&aq[0][span.clone()], &aq[1][span.clone()], &aq[2][span.clone()], &rq[span]);
-                let (nr, ng, nb, den, q0, q1, q2, rq, sum) =
-                    (&mut nr[..w], &mut ng[..w], &mut nb[..w], &mut den[..w], &q0[..w], &q1[..w], &q2[..w], &rq[..w], &sum[..w]);
+                let (nr, ng, nb, den, q0, q1, q2, rq, sum) = (
+                    &mut nr[..w],
+                    &mut ng[..w],
+                    &mut nb[..w],
+                    &mut den[..w],
+                    &q0[..w],
+                    &q1[..w],
+                    &q2[..w],
+                    &rq[..w],
+                    &sum[..w],
+                );
                 for x in 0..w {
                     let weight = exp_nonpositive::<Unfused>((-sum[x] * inv_area).min(0.0)) * rq[x];
                     nr[x] += weight * q0[x];
@@ -322,7 +335,8 @@ mod tests {
         let at = |y: isize, x: isize| y.clamp(0, h as isize - 1) as usize * w + x.clamp(0, w as isize - 1) as usize;
         let refl = |i: usize| albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE);
         let d = |p: usize, q: usize| {
-            let diff: f64 = (0..3).map(|c| (f64::from(albedo[c][p]) - f64::from(albedo[c][q])).powi(2)).sum::<f64>() / 3.0;
+            let diff: f64 =
+                (0..3).map(|c| (f64::from(albedo[c][p]) - f64::from(albedo[c][q])).powi(2)).sum::<f64>() / 3.0;
             let (vp, vq) = (f64::from(v[p]), f64::from(v[q]));
             (diff - (vp + vp.min(vq))) / (1e-10 + f64::from(K * K) * (vp + vq))
         };
@@ -377,9 +391,8 @@ mod tests {
         let (w, h) = (24, 24);
         let mut seed = 7;
         let line = 10;
-        let plane: Plane = (0..w * h)
-            .map(|i| if i % w == line { 0.9 } else { 0.5 } + 0.1 * (lcg(&mut seed) - 0.5))
-            .collect();
+        let plane: Plane =
+            (0..w * h).map(|i| if i % w == line { 0.9 } else { 0.5 } + 0.1 * (lcg(&mut seed) - 0.5)).collect();
         let variance = vec![0.1f32 * 0.1 / 12.0; w * h];
         let out = nl_means([PlaneRef::F32(&plane), PlaneRef::F32(&plane), PlaneRef::F32(&plane)], variance, w, h);
         let err = |p: &[f32]| -> f32 {

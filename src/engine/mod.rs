@@ -137,14 +137,35 @@ pub struct Progress {
     pub tiles_total: usize,
 }
 
+/// What one denoising is asked for besides the frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Options {
+    /// The variant, or `None` for the one [`Engine::select`] picks.
+    pub variant: Option<Variant>,
+    /// The outlier handling before the networks.
+    pub fireflies: Fireflies,
+    /// Return the denoised diffuse and specular besides the color ([`Denoised::components`]).
+    /// Without them the color is assembled tile by tile and the frame-sized planes of the
+    /// two components are never allocated (at 4K, 200 MB).
+    pub components: bool,
+}
+
+/// The denoised diffuse and specular components of a frame (their sum is the color).
+#[derive(Clone, Debug)]
+pub struct Components {
+    pub diffuse: [Plane; 3],
+    pub specular: [Plane; 3],
+}
+
 /// A denoised frame.
+#[derive(Debug)]
 pub struct Denoised {
     pub width: usize,
     pub height: usize,
     pub variant: Variant,
     pub color: [Plane; 3],
-    pub diffuse: [Plane; 3],
-    pub specular: [Plane; 3],
+    /// The components, where [`Options::components`] asked for them.
+    pub components: Option<Components>,
     pub tiles: usize,
     pub timings: StageTimings,
     /// What the firefly handling did.
@@ -259,32 +280,31 @@ impl Engine {
     }
 
     /// Denoises `frame` with `variant` (or the one [`Engine::select`] picks) and the default
-    /// firefly handling (`auto`). `on_tile` is called after each tile; returning `false`
-    /// cancels between tiles.
+    /// firefly handling (`auto`), with its components. `on_tile` is called after each tile;
+    /// returning `false` cancels between tiles.
     pub fn denoise(
         &mut self,
         frame: &Frame,
         variant: Option<Variant>,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError> {
-        self.denoise_with(frame, variant, Fireflies::default(), on_tile)
+        self.denoise_with(frame, Options { variant, components: true, ..Options::default() }, on_tile)
     }
 
-    /// [`Engine::denoise`] with the given firefly handling.
+    /// [`Engine::denoise`] as `options` ask.
     pub fn denoise_with(
         &mut self,
         frame: &Frame,
-        variant: Option<Variant>,
-        fireflies: Fireflies,
+        options: Options,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError> {
-        let variant = match variant {
+        let variant = match options.variant {
             Some(v) => v,
             None => self.select(frame)?,
         };
         let mut timings = StageTimings::default();
         let t = Instant::now();
-        let (handled, report) = self.pool.install(|| handle_fireflies(frame, fireflies));
+        let (handled, report) = self.pool.install(|| handle_fireflies(frame, options.fireflies));
         let frame = handled.as_ref().unwrap_or(frame);
         timings.fireflies = t.elapsed();
         let t = Instant::now();
@@ -297,54 +317,31 @@ impl Engine {
         let stats = FrameStats::of(frame);
         let tiles = plan.cores(frame.width, frame.height);
         let (w, h) = (frame.width, frame.height);
-        // The filtered diffuse and specular, turned into the outputs in place below.
-        let mut filtered: [[Plane; 3]; 2] = std::array::from_fn(|_| std::array::from_fn(|_| vec![0f32; w * h]));
+        let planes = || -> [Plane; 3] { std::array::from_fn(|_| vec![0f32; w * h]) };
+        let mut color = planes();
+        let mut components = options.components.then(|| Components { diffuse: planes(), specular: planes() });
+        let albedo = frame.planes(Buffer::Albedo);
 
         for (index, core) in tiles.iter().enumerate() {
             let region = expand(*core, plan.halo, w, h);
-            let out = run_region(model, &self.pool, frame, &stats, region, *core, plan.multiple, &mut timings, true)?;
-            for (slot, core_out) in out.iter().enumerate() {
-                scatter(core_out, *core, w, &mut filtered[slot]);
+            let [mut diffuse, mut specular] =
+                run_region(model, &self.pool, frame, &stats, region, *core, plan.multiple, &mut timings, true)?;
+            let t = Instant::now();
+            self.pool.install(|| finish_core(&mut diffuse, &mut specular, &albedo, *core, w));
+            if let Some(c) = &mut components {
+                scatter(&diffuse, *core, w, &mut c.diffuse);
+                scatter(&specular, *core, w, &mut c.specular);
             }
+            for (d, s) in diffuse.iter_mut().zip(&specular) {
+                *d = saturate(*d + s);
+            }
+            scatter(&diffuse, *core, w, &mut color);
+            timings.reconstruction += t.elapsed();
             if !on_tile(Progress { tiles_done: index + 1, tiles_total: tiles.len() }) && index + 1 < tiles.len() {
                 return Err(EngineError::Cancelled);
             }
         }
-
-        // The inverse transforms, saturated: a finite input never gives a non-finite output
-        // (a filtered diffuse value times an albedo near the float maximum would overflow).
-        let t = Instant::now();
-        let albedo = frame.planes(Buffer::Albedo);
-        let [mut diffuse, mut specular] = filtered;
-        // The albedo is read a chunk at a time (it may be kept as f16).
-        const CHUNK: usize = 4096;
-        let mut a = vec![0f32; CHUNK];
-        for (plane, albedo) in diffuse.iter_mut().zip(&albedo) {
-            for (k, chunk) in plane.chunks_mut(CHUNK).enumerate() {
-                let a = &mut a[..chunk.len()];
-                albedo.read(k * CHUNK, a);
-                for (d, a) in chunk.iter_mut().zip(a.iter()) {
-                    *d = saturate(*d * (a.max(0.0) + EPS));
-                }
-            }
-        }
-        for s in specular.iter_mut().flatten() {
-            *s = saturate(s.exp_m1());
-        }
-        let color: [Plane; 3] =
-            std::array::from_fn(|c| diffuse[c].iter().zip(&specular[c]).map(|(d, s)| saturate(d + s)).collect());
-        timings.reconstruction += t.elapsed();
-        Ok(Denoised {
-            width: w,
-            height: h,
-            variant,
-            color,
-            diffuse,
-            specular,
-            tiles: tiles.len(),
-            timings,
-            fireflies: report,
-        })
+        Ok(Denoised { width: w, height: h, variant, color, components, tiles: tiles.len(), timings, fireflies: report })
     }
 
     /// Time spent in ONNX Runtime alone on the regions [`Engine::denoise`] would run for
@@ -374,8 +371,7 @@ pub trait Denoiser {
     fn denoise(
         &mut self,
         frame: &Frame,
-        variant: Option<Variant>,
-        fireflies: Fireflies,
+        options: Options,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError>;
 }
@@ -388,11 +384,10 @@ impl Denoiser for Engine {
     fn denoise(
         &mut self,
         frame: &Frame,
-        variant: Option<Variant>,
-        fireflies: Fireflies,
+        options: Options,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError> {
-        Engine::denoise_with(self, frame, variant, fireflies, on_tile)
+        Engine::denoise_with(self, frame, options, on_tile)
     }
 }
 
@@ -708,6 +703,32 @@ pub fn expand(core: Rect, halo: usize, w: usize, h: usize) -> Rect {
     let x = core.x.saturating_sub(halo);
     let y = core.y.saturating_sub(halo);
     Rect { x, y, w: (core.x + core.w + halo).min(w) - x, h: (core.y + core.h + halo).min(h) - y }
+}
+
+/// The inverse transforms of a core's filtered `[3][core.h][core.w]` diffuse and specular,
+/// in place: the diffuse times the albedo (`max(a, 0) + EPS`, read from the frame's rows
+/// of the core), the specular `exp(x) − 1`, both saturated: a finite input never gives a
+/// non-finite output (a filtered diffuse value times an albedo near the float maximum
+/// would overflow).
+fn finish_core(diffuse: &mut [f32], specular: &mut [f32], albedo: &[PlaneRef<'_>], core: Rect, w: usize) {
+    use rayon::prelude::*;
+    let cn = core.pixels();
+    diffuse.par_chunks_mut(core.w).enumerate().for_each_init(
+        || vec![0f32; core.w],
+        |a, (i, row)| {
+            let (c, y) = (i / core.h, i % core.h);
+            albedo[c].read((core.y + y) * w + core.x, a);
+            for (d, a) in row.iter_mut().zip(a.iter()) {
+                *d = saturate(*d * (a.max(0.0) + EPS));
+            }
+        },
+    );
+    debug_assert_eq!(diffuse.len(), 3 * cn);
+    specular.par_chunks_mut(core.w).for_each(|row| {
+        for s in row {
+            *s = saturate(s.exp_m1());
+        }
+    });
 }
 
 /// Copies a core's `[3][core.h][core.w]` into frame-sized `[3][h][w]` planes.

@@ -87,8 +87,7 @@ impl Denoiser for FakeDenoiser {
     fn denoise(
         &mut self,
         frame: &Frame,
-        variant: Option<Variant>,
-        _fireflies: crate::engine::Fireflies,
+        options: crate::engine::Options,
         on_tile: &mut dyn FnMut(TileProgress) -> bool,
     ) -> Result<Denoised, EngineError> {
         self.seen.lock().unwrap().push(frame.width);
@@ -103,10 +102,11 @@ impl Denoiser for FakeDenoiser {
         Ok(Denoised {
             width: frame.width,
             height: frame.height,
-            variant: variant.unwrap_or(Variant::Nocov),
-            color: color.clone(),
-            diffuse: color.clone(),
-            specular: color,
+            variant: options.variant.unwrap_or(Variant::Nocov),
+            components: options
+                .components
+                .then(|| crate::engine::Components { diffuse: color.clone(), specular: color.clone() }),
+            color,
             tiles,
             timings: Default::default(),
             fireflies: Default::default(),

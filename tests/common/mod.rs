@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 
 use exr::prelude::*;
-use mcdenoise::engine::{synthetic_planes, Engine, EngineConfig};
+use mcdenoise::engine::{synthetic_planes, Components, Denoised, Engine, EngineConfig};
 use mcdenoise::frame::{Frame, NamedPlanes};
 
 /// A part of a multi-part file: name, size, channels.
@@ -74,6 +74,11 @@ pub fn by_part(planes: &[(String, Vec<f32>)]) -> Vec<(String, NamedPlanes)> {
         }
     }
     parts
+}
+
+/// The diffuse and specular of a result denoised with them ([`Engine::denoise`] asks for them).
+pub fn parts(out: &Denoised) -> &Components {
+    out.components.as_ref().expect("denoised without its components")
 }
 
 pub fn frame_of(bytes: &[u8]) -> Frame {
