@@ -126,8 +126,11 @@ pub fn decode(path: &Path, which: Input, limits: &Limits) -> Result<Frame, Failu
 /// Reads and decodes the frame to denoise, with what its output carries.
 fn decode_carrying(request: &Request<'_>, carry: &Carry) -> Result<(Frame, Carried), Failure> {
     let which = Input::Frame;
-    let bytes = std::fs::read(request.frame).map_err(|error| Failure::Read { which, error })?;
-    Frame::from_exr_bytes_carrying(&bytes, &request.limits, carry, &request.channel_maps)
+    let file = std::fs::File::open(request.frame).map_err(|error| Failure::Read { which, error })?;
+    // Read a block at a time rather than whole: the file's bytes would sit beside the
+    // decoded planes (the decode's peak memory).
+    let input = std::io::BufReader::with_capacity(1 << 20, file);
+    Frame::from_exr_reader_carrying(input, &request.limits, carry, &request.channel_maps)
         .map_err(|error| Failure::Invalid { which, error })
 }
 

@@ -143,6 +143,36 @@ fn truncated_files_are_refused() {
 }
 
 #[test]
+fn a_file_read_a_block_at_a_time_decodes_and_fails_as_its_bytes_do() {
+    // `mcdenoise run` and the workers read the frame's file through a buffered reader.
+    let dir = tempfile::tempdir().unwrap();
+    let planes = named_planes(W, H, true);
+    let bytes = exr_single(W, H, &planes, Sample::F32);
+    let read = |cut: usize| {
+        let path = dir.path().join(format!("cut-{cut}.exr"));
+        std::fs::write(&path, &bytes[..cut]).unwrap();
+        let file = std::io::BufReader::with_capacity(64, std::fs::File::open(&path).unwrap());
+        let from_file =
+            Frame::from_exr_reader_carrying(file, &Limits::default(), &Carry::default(), &ChannelMaps::default());
+        let from_bytes = Frame::from_exr_bytes_carrying(
+            &bytes[..cut],
+            &Limits::default(),
+            &Carry::default(),
+            &ChannelMaps::default(),
+        );
+        (from_file.map(|(f, _)| f), from_bytes.map(|(f, _)| f))
+    };
+    let (frame, _) = read(bytes.len());
+    assert_same_as_planes(&frame.unwrap(), &planes, 0.0);
+    for cut in [0, 10, bytes.len() / 3, bytes.len() - 7] {
+        let (from_file, from_bytes) = read(cut);
+        let (a, b) = (from_file.unwrap_err(), from_bytes.unwrap_err());
+        assert!(matches!(a, FrameError::Truncated(_) | FrameError::Corrupt(_)), "cut at {cut}: {a:?}");
+        assert_eq!(a, b, "cut at {cut}");
+    }
+}
+
+#[test]
 fn wrong_magic_and_garbage_are_refused() {
     let err = Frame::from_exr_bytes(b"P6\n4 4\n255\n................................", &Limits::default()).unwrap_err();
     assert!(matches!(err, FrameError::Corrupt(_)), "{err:?}");

@@ -3,7 +3,7 @@
 //! Headers are read and checked (size limit, deep data, subsampling) before any pixel is
 //! decompressed, so a small file that declares a huge image is refused cheaply.
 
-use std::io::Cursor;
+use std::io::{Cursor, Read, Seek, SeekFrom};
 
 use exr::prelude::*;
 
@@ -89,9 +89,9 @@ pub fn read_header(reader: impl std::io::Read, limits: &Limits) -> std::result::
 /// Checks that the offset tables point at every block exactly once. The decoder reads the
 /// chunks the tables point at and leaves the pixels of a block no entry points at as zeros,
 /// so a table that lists one chunk twice would decode into a frame with a hole.
-fn check_chunks(bytes: &[u8]) -> std::result::Result<(), FrameError> {
+fn check_chunks(input: impl Read + Seek) -> std::result::Result<(), FrameError> {
     use exr::block::chunk::CompressedBlock;
-    let reader = exr::block::read(Cursor::new(bytes), false).map_err(map_exr_error)?;
+    let reader = exr::block::read(input, false).map_err(map_exr_error)?;
     let chunks = reader.filter_chunks(false, |_, _, _| true).map_err(map_exr_error)?;
     let mut seen = std::collections::HashSet::new();
     for chunk in chunks {
@@ -136,8 +136,18 @@ pub(super) struct Decoded {
 /// In a multi-part file a channel's full name is `<part name>.<channel>`, unless the
 /// channel name already starts with the part name.
 pub(super) fn decode(bytes: &[u8], limits: &Limits) -> std::result::Result<Decoded, FrameError> {
-    let HeaderInfo { width, height, .. } = read_header(Cursor::new(bytes), limits)?;
-    contain(|| check_chunks(bytes))??;
+    decode_from(Cursor::new(bytes), limits)
+}
+
+/// [`decode`] from a reader (a file: only a block at a time is in memory beside the
+/// decoded channels). The input is read three times from its start: the headers, the
+/// chunk check, the pixels; an I/O error reads as a truncated or corrupt file.
+pub(super) fn decode_from(mut input: impl Read + Seek, limits: &Limits) -> std::result::Result<Decoded, FrameError> {
+    let rewind = |input: &mut dyn Seek| input.seek(SeekFrom::Start(0)).map(drop).map_err(|e| map_exr_error(e.into()));
+    let HeaderInfo { width, height, .. } = read_header(&mut input, limits)?;
+    rewind(&mut input)?;
+    contain(|| check_chunks(&mut input))??;
+    rewind(&mut input)?;
 
     let image = contain(|| {
         read()
@@ -146,7 +156,7 @@ pub(super) fn decode(bytes: &[u8], limits: &Limits) -> std::result::Result<Decod
             .all_channels()
             .all_layers()
             .all_attributes()
-            .from_buffered(Cursor::new(bytes))
+            .from_buffered(input)
     })?
     .map_err(map_exr_error)?;
 

@@ -323,7 +323,19 @@ impl Frame {
         carry: &Carry,
         maps: &ChannelMaps,
     ) -> Result<(Frame, Carried), FrameError> {
-        let decoded = exr_io::decode(bytes, limits)?;
+        Frame::from_exr_reader_carrying(std::io::Cursor::new(bytes), limits, carry, maps)
+    }
+
+    /// [`Frame::from_exr_bytes_carrying`] from a reader, such as a buffered file: the file's
+    /// bytes are never all in memory (at 4K, 0.65 GB of float32 input beside its decoded
+    /// planes). An I/O error while reading reads as a truncated or corrupt file.
+    pub fn from_exr_reader_carrying(
+        input: impl std::io::Read + std::io::Seek,
+        limits: &Limits,
+        carry: &Carry,
+        maps: &ChannelMaps,
+    ) -> Result<(Frame, Carried), FrameError> {
+        let decoded = exr_io::decode_from(input, limits)?;
         let (w, h) = (decoded.width, decoded.height);
         // Checked on every name: the error lists what the file has.
         let names: Vec<String> = decoded.channels.iter().map(|(_, c)| c.name.to_string()).collect();
