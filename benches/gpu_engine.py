@@ -8,8 +8,10 @@ Synthetic frames with every channel (`mcdenoise_train.frames.synthetic_frame`) a
 
 - parity: `mcdenoise run` on `--device` (reconstruction in the graph where the variant has
   `model-recon.onnx`; on the CPU, asked for) against the CPU with the engine's own
-  reconstruction, on a small frame: the largest difference relative to the largest value;
-- the daemon (`serve --device`, `--workers` workers, whole frames: `--tile-v2 0`): `--jobs`
+  reconstruction, on a small frame: the largest difference relative to the largest value,
+  for each of `--precisions` (`fp16`: the network in half precision, `model-recon-fp16.onnx`);
+- the daemon (`serve --device --precision`, `--workers` workers, whole frames: `--tile-v2 0`),
+  for each precision: `--jobs`
   copies of each frame submitted by each of `--clients` concurrent clients in turn; frames per
   second, latency, and the jobs' own stage timings (median), whose `inference` is the time
   on the device once sessions are warm (the first job of each size is left out: it includes
@@ -53,7 +55,7 @@ def run_json(a, *args: str) -> dict:
     return json.loads(out.stdout)
 
 
-def parity(a, work: Path) -> dict:
+def parity(a, work: Path, precision: str) -> dict:
     from mcdenoise_train.exr import read_exr
 
     frame = work / "parity.exr"
@@ -61,21 +63,22 @@ def parity(a, work: Path) -> dict:
     reports, colors = {}, {}
     # On the CPU, `auto` would be the engine's reconstruction again: ask for the graph's.
     where = "graph" if a.device == "cpu" else "auto"
-    for name, device, where in (("device", a.device, where), ("cpu", "cpu", "engine")):
+    for name, device, where, p in (("device", a.device, where, precision), ("cpu", "cpu", "engine", "fp32")):
         out = work / f"parity-{name}.exr"
-        reports[name] = run_json(a, str(frame), "-o", str(out), "--device", device, "--reconstruction", where)
+        reports[name] = run_json(a, str(frame), "-o", str(out), "--device", device, "--reconstruction", where,
+                                 "--precision", p)
         c = read_exr(out)
         colors[name] = [c[k] for k in ("R", "G", "B")]
     scale = max(float(np.abs(x).max()) for x in colors["cpu"])
     worst = max(float(np.abs(x - y).max()) for x, y in zip(colors["device"], colors["cpu"]))
-    return {"frame": "320x192", "device": reports["device"]["device"],
+    return {"frame": "320x192", "device": reports["device"]["device"], "precision": reports["device"]["precision"],
             "reconstruction": reports["device"]["reconstruction"], "max_abs_diff": worst,
             "relative_to_max": worst / max(scale, 1e-12)}
 
 
-def daemon_runs(a, work: Path, frames: dict[str, Path]) -> list[dict]:
+def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str) -> list[dict]:
     rows = []
-    d = Daemon(a, work, "serve", None, ("--device", a.device, "--tile-v2", "0"))
+    d = Daemon(a, work, "serve", None, ("--device", a.device, "--tile-v2", "0", "--precision", precision))
     try:
         d.wait_ready()
         for size, path in frames.items():
@@ -104,10 +107,11 @@ def daemon_runs(a, work: Path, frames: dict[str, Path]) -> list[dict]:
                     raise RuntimeError(f"{size}, {clients} clients: {len(jobs)} of {clients * a.jobs} jobs succeeded")
                 stages = {k: statistics.median(j["timings_ms"][k] for j in jobs)
                           for k in jobs[0]["timings_ms"] if isinstance(jobs[0]["timings_ms"][k], (int, float))}
-                rows.append({"frame": size, "clients": clients, "jobs": len(jobs), "frames_per_s": len(jobs) / wall,
+                rows.append({"frame": size, "precision": precision, "clients": clients, "jobs": len(jobs),
+                             "frames_per_s": len(jobs) / wall,
                              "latency_p50_s": statistics.median(j["latency_s"] for j in jobs),
                              "job_stages_ms_median": stages})
-                print(f"{size}, {clients} clients: {len(jobs) / wall:.2f} frames/s, "
+                print(f"{size} {precision}, {clients} clients: {len(jobs) / wall:.2f} frames/s, "
                       f"inference {stages.get('inference', 0):.1f} ms", file=sys.stderr)
     finally:
         d.stop()
@@ -133,6 +137,7 @@ def main() -> int:
     p.add_argument("--sizes", default="1920x1080,3840x2160")
     p.add_argument("--jobs", type=int, default=8, help="jobs per client and configuration")
     p.add_argument("--clients", default="1,4")
+    p.add_argument("--precisions", default="fp32,fp16", help="the networks' precisions to run (`--precision`)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--threads", type=int, default=4, help="threads per worker (pre- and post-processing)")
     p.add_argument("--models", default=str(ROOT / "models"))
@@ -141,6 +146,7 @@ def main() -> int:
     p.add_argument("--out", required=True)
     a = p.parse_args()
     a.clients = [int(c) for c in a.clients.split(",")]
+    precisions = [p for p in a.precisions.split(",") if p]
     sizes = [s for s in a.sizes.split(",") if s]
     work = Path(tempfile.mkdtemp(prefix="mcdenoise-gpu-"))
     frames = {}
@@ -153,8 +159,8 @@ def main() -> int:
         "device": a.device,
         "workers": a.workers,
         "threads_per_worker": a.threads,
-        "parity": parity(a, work),
-        "daemon": daemon_runs(a, work, frames),
+        "parity": [parity(a, work, p) for p in precisions],
+        "daemon": [row for p in precisions for row in daemon_runs(a, work, frames, p)],
         "oidn": oidn(a, sizes) if a.oidn_benchmark else None,
     }
     gpu = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip() if a.device != "cpu" else ""

@@ -123,6 +123,11 @@ pub struct RunArgs {
     /// run on), or `auto` (`graph` on a GPU where the variant has that file, else `engine`).
     #[arg(long, env = "MCDENOISE_RECONSTRUCTION", default_value = "auto", value_parser = parse_reconstruction)]
     pub reconstruction: engine::Reconstruction,
+    /// What contract-v2 networks compute in: `fp32`, `fp16` (the network in half precision,
+    /// `model-recon-fp16.onnx`, its reconstruction in the graph), or `auto` (`fp16` on a GPU
+    /// where the variant has that file, else `fp32`).
+    #[arg(long, env = "MCDENOISE_PRECISION", default_value = "auto", value_parser = parse_precision)]
+    pub precision: engine::Precision,
     #[command(flatten)]
     pub frame: FrameArgs,
 }
@@ -134,6 +139,11 @@ pub fn parse_device(s: &str) -> std::result::Result<engine::Device, String> {
 
 /// clap's parser for `--reconstruction` ([`engine::Reconstruction`]).
 pub fn parse_reconstruction(s: &str) -> std::result::Result<engine::Reconstruction, String> {
+    s.parse()
+}
+
+/// clap's parser for `--precision` ([`engine::Precision`]).
+pub fn parse_precision(s: &str) -> std::result::Result<engine::Precision, String> {
     s.parse()
 }
 
@@ -194,6 +204,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     config.ort_library = args.ort_library.clone();
     config.device = args.device;
     config.reconstruction = args.reconstruction;
+    config.precision = args.precision;
     config.albedo_prefilter = args.albedo.albedo_prefilter;
 
     let t = Instant::now();
@@ -241,6 +252,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "tiles": out.tiles,
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "reconstruction": reconstruction.to_string(),
+        "precision": used.map_or(engine::Precision::Fp32, |m| m.precision).name(),
         "threads": config.threads,
         "device": engine.device().to_string(),
         "flops_per_pixel": flops,

@@ -164,6 +164,11 @@ pub struct ServeArgs {
     /// run on), or `auto` (`graph` on a GPU where the variant has that file, else `engine`).
     #[arg(long, env = "MCDENOISE_RECONSTRUCTION", default_value = "auto", value_parser = crate::cli::parse_reconstruction, help_heading = "Models and workers")]
     pub reconstruction: crate::engine::Reconstruction,
+    /// What contract-v2 networks compute in: `fp32`, `fp16` (the network in half precision,
+    /// `model-recon-fp16.onnx`, its reconstruction in the graph), or `auto` (`fp16` on a GPU
+    /// where the variant has that file, else `fp32`).
+    #[arg(long, env = "MCDENOISE_PRECISION", default_value = "auto", value_parser = crate::cli::parse_precision, help_heading = "Models and workers")]
+    pub precision: crate::engine::Precision,
     /// Workers, each with its own ONNX Runtime sessions, denoising one job at a time
     /// (default: cores / threads-per-worker, at least 1).
     #[arg(long, env = "MCDENOISE_WORKERS", help_heading = "Models and workers")]
@@ -430,6 +435,7 @@ impl ServeArgs {
             "models": self.models,
             "device": self.device.to_string(),
             "reconstruction": self.reconstruction.to_string(),
+            "precision": self.precision.name(),
             "workers": self.workers(),
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,

@@ -10,7 +10,7 @@ use std::path::Path;
 use common::*;
 use mcdenoise::engine::{
     albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, Options, Outputs,
-    Reconstruction, Variant,
+    Precision, Reconstruction, Variant,
 };
 use model_dirs::*;
 
@@ -170,6 +170,49 @@ fn the_reconstruction_in_the_graph_gives_the_engines_output() {
     // On the CPU, `auto` keeps the engine's reconstruction (its own code is the faster there).
     let auto = engine_reconstructing(&tiny_v2(), 0, Reconstruction::Auto);
     assert!(auto.models().iter().all(|m| m.outputs == Outputs::Kernels));
+}
+
+#[test]
+fn the_half_precision_network_stays_near_the_float_one() {
+    // tiny-v2's model-recon-fp16.onnx: the network in float16, its inputs compressed and its
+    // reconstruction run in float32. ONNX Runtime's CPU provider runs it here (slowly); a GPU
+    // runs it on its tensor cores.
+    let at = |precision: Precision, reconstruction: Reconstruction| {
+        let mut config = EngineConfig::new(tiny_v2());
+        (config.threads, config.tile_v2, config.reconstruction, config.precision) = (2, 32, reconstruction, precision);
+        Engine::load(&config)
+    };
+    let mut half = at(Precision::Fp16, Reconstruction::Auto).unwrap();
+    assert!(half.models().iter().all(|m| m.precision == Precision::Fp16
+        && m.outputs == Outputs::Filtered
+        && m.path.ends_with("model-recon-fp16.onnx")));
+    let mut float = at(Precision::Fp32, Reconstruction::Graph).unwrap();
+    assert!(float.models().iter().all(|m| m.precision == Precision::Fp32 && m.path.ends_with("model-recon.onnx")));
+    for cov in [true, false] {
+        let frame = synthetic_frame(90, 70, cov);
+        let a = half.denoise(&frame, None, &mut |_| true).unwrap();
+        let b = float.denoise(&frame, None, &mut |_| true).unwrap();
+        for c in 0..3 {
+            assert!(a.color[c].iter().all(|v| v.is_finite()));
+            let d = max_rel_diff(&a.color[c], &b.color[c]);
+            assert!(d > 0.0 && d <= 2e-2, "cov {cov}, color {c}: relative difference {d}");
+        }
+    }
+    // On the CPU, `auto` stays in float32; fp16 needs its file and the graph's reconstruction.
+    let auto = at(Precision::Auto, Reconstruction::Auto).unwrap();
+    assert!(auto.models().iter().all(|m| m.precision == Precision::Fp32 && m.path.ends_with("model.onnx")));
+    let err = at(Precision::Fp16, Reconstruction::Engine).err().unwrap().to_string();
+    assert!(err.contains("--precision fp16 runs the half-precision network"), "{err}");
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "full", "model.onnx", &read(&tiny_v2(), "full", "model.onnx"));
+    let mut config = EngineConfig::new(tmp.path());
+    (config.threads, config.precision) = (1, Precision::Fp16);
+    let err = Engine::load(&config).err().unwrap().to_string();
+    assert!(err.contains("--precision fp16 needs model-recon-fp16.onnx beside model.onnx"), "{err}");
+    // A float32 graph under the half-precision name is refused.
+    write(tmp.path(), "full", "model-recon-fp16.onnx", &read(&tiny_v2(), "full", "model-recon.onnx"));
+    let err = Engine::load(&config).err().unwrap().to_string();
+    assert!(err.contains("metadata `mcdenoise.precision` is `fp32`, expected `fp16`"), "{err}");
 }
 
 #[test]

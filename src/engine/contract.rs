@@ -97,6 +97,9 @@ pub mod keys {
     /// Contract v2, optional: what the graph outputs, `kernels` (absent) or `filtered`
     /// ([`super::Outputs`]).
     pub const OUTPUTS: &str = "mcdenoise.outputs";
+    /// Contract v2, optional: what the network computes in, `fp32` (absent) or `fp16`
+    /// ([`super::Precision`]).
+    pub const PRECISION: &str = "mcdenoise.precision";
 }
 
 /// What a contract-v2 graph outputs (docs/model-contract.md, "Reconstruction in the graph").
@@ -162,6 +165,59 @@ impl fmt::Display for Reconstruction {
             Reconstruction::Engine => "engine",
             Reconstruction::Graph => "graph",
         })
+    }
+}
+
+/// The precision a contract-v2 network computes in, and which file of a variant with the
+/// reconstruction in the graph is loaded (docs/model-contract.md, "Half precision").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// `fp16` on a GPU where the variant has `model-recon-fp16.onnx`, else `fp32`.
+    #[default]
+    Auto,
+    /// Float32 throughout.
+    Fp32,
+    /// The network in float16 (`model-recon-fp16.onnx`, the reconstruction in its graph);
+    /// every contract-v2 variant must then have the file.
+    Fp16,
+}
+
+impl Precision {
+    /// The value of [`keys::PRECISION`] (absent = `Fp32`); `Auto` is no file's precision.
+    pub fn parse(value: Option<&str>) -> Option<Precision> {
+        match value {
+            None | Some("fp32") => Some(Precision::Fp32),
+            Some("fp16") => Some(Precision::Fp16),
+            Some(_) => None,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Precision::Auto => "auto",
+            Precision::Fp32 => "fp32",
+            Precision::Fp16 => "fp16",
+        }
+    }
+}
+
+impl std::str::FromStr for Precision {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(Precision::Auto),
+            "fp32" => Ok(Precision::Fp32),
+            "fp16" => Ok(Precision::Fp16),
+            other => Err(format!("unknown precision `{other}` (expected `auto`, `fp32` or `fp16`)")),
+        }
+    }
+}
+
+impl fmt::Display for Precision {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
     }
 }
 

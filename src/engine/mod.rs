@@ -28,7 +28,7 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use albedo::AlbedoPrefilter;
-pub use contract::{Component, FeatureSet, InputCompression, Outputs, Reconstruction, Variant};
+pub use contract::{Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, Variant};
 pub use device::Device;
 pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
@@ -77,6 +77,9 @@ pub struct EngineConfig {
     /// Where contract-v2 kernels are applied ([`Reconstruction`]; `auto`: in the graph on a
     /// GPU where the variant has `model-recon.onnx`).
     pub reconstruction: Reconstruction,
+    /// The contract-v2 networks' precision ([`Precision`]; `auto`: half on a GPU where the
+    /// variant has `model-recon-fp16.onnx`).
+    pub precision: Precision,
     /// Whether the albedo is prefiltered by its variance ([`albedo`]; `on` unless turned off).
     pub albedo_prefilter: AlbedoPrefilter,
 }
@@ -92,6 +95,7 @@ impl EngineConfig {
             ort_library: None,
             device: Device::Cpu,
             reconstruction: Reconstruction::Auto,
+            precision: Precision::Auto,
             albedo_prefilter: AlbedoPrefilter::On,
         }
     }
@@ -204,7 +208,8 @@ impl Engine {
         let threads = config.threads.max(1);
         let library = runtime::library().map_or_else(|| "loaded".to_string(), |p| p.display().to_string());
         let device = config.device.resolve(&library).map_err(EngineError::Runtime)?;
-        let placement = model::Placement { threads, device, reconstruction: config.reconstruction };
+        let placement =
+            model::Placement { threads, device, reconstruction: config.reconstruction, precision: config.precision };
         let models = model::load_models(env, &config.models_dir, placement)?;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -798,6 +803,7 @@ mod tests {
             levels,
             input_compression: InputCompression::Engine,
             outputs: Outputs::Kernels,
+            precision: Precision::Fp32,
         }
     }
 

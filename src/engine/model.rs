@@ -10,7 +10,8 @@ use serde::Serialize;
 use sha2::Digest;
 
 use super::contract::{
-    self, keys, Component, FeatureSet, InputCompression, Outputs, Reconstruction, Variant, COLOR_CHANNELS, TAPS,
+    self, keys, Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, Variant, COLOR_CHANNELS,
+    TAPS,
 };
 use super::device::Device;
 use super::multiscale::Pyramid;
@@ -45,6 +46,8 @@ pub struct ModelInfo {
     pub input_compression: InputCompression,
     /// What the graph outputs (`kernels` for contract v1).
     pub outputs: Outputs,
+    /// What the network computes in (`fp32` for contract v1).
+    pub precision: Precision,
 }
 
 fn component_or_both<S: serde::Serializer>(c: &Option<Component>, s: S) -> Result<S::Ok, S::Error> {
@@ -81,16 +84,21 @@ pub struct Placement {
     pub device: Device,
     /// Where contract-v2 kernels are applied (which file of a v2 variant is loaded).
     pub reconstruction: Reconstruction,
+    /// The contract-v2 network's precision (with `fp16`, the half-precision file).
+    pub precision: Precision,
 }
 
 impl Placement {
     pub fn cpu(threads: usize) -> Placement {
-        Placement { threads, device: Device::Cpu, reconstruction: Reconstruction::Engine }
+        Placement { threads, device: Device::Cpu, reconstruction: Reconstruction::Engine, precision: Precision::Fp32 }
     }
 }
 
 /// The file of a contract-v2 variant with the reconstruction in the graph.
 pub const RECON_FILE: &str = "model-recon.onnx";
+
+/// The same with the network in half precision (`mcdenoise.precision` `fp16`).
+pub const RECON_FP16_FILE: &str = "model-recon-fp16.onnx";
 
 /// Outputs of a graph with the reconstruction in it (`mcdenoise.outputs` `filtered`).
 const FILTERED_OUTPUTS: [&str; 2] = ["diffuse_filtered", "specular_filtered"];
@@ -268,6 +276,7 @@ impl Network {
             levels: 1,
             sha256: model.sha256.clone(),
             input_compression: InputCompression::Graph,
+            precision: Precision::Fp32,
             outputs: Outputs::Kernels,
         };
         Ok(Network { session: model.session, info })
@@ -345,6 +354,7 @@ impl MultiScaleNetwork {
         let input_compression =
             model.optional(keys::INPUT_COMPRESSION, InputCompression::parse, "`graph` or `engine`")?;
         let outputs = model.optional(keys::OUTPUTS, Outputs::parse, "`kernels` or `filtered`")?;
+        let precision = model.optional(keys::PRECISION, Precision::parse, "`fp32` or `fp16`")?;
         if outputs == Outputs::Filtered && input_compression == InputCompression::Engine {
             return Err(model_error(
                 path,
@@ -401,6 +411,7 @@ impl MultiScaleNetwork {
             sha256: model.sha256.clone(),
             input_compression,
             outputs,
+            precision,
         };
         Ok(MultiScaleNetwork { session: model.session, info, size_multiple })
     }
@@ -610,29 +621,68 @@ fn load_variant(
         ));
     }
     if v2.exists() {
-        let recon = dir.join(RECON_FILE);
-        let in_graph = match placement.reconstruction {
-            Reconstruction::Engine => false,
-            Reconstruction::Graph if !recon.exists() => {
+        let (recon, half) = (dir.join(RECON_FILE), dir.join(RECON_FP16_FILE));
+        let on_gpu = matches!(placement.device, Device::Cuda(_));
+        let fp16 = match placement.precision {
+            Precision::Fp32 => false,
+            Precision::Fp16 if placement.reconstruction == Reconstruction::Engine => {
                 return Err(model_error(
                     dir,
                     format!(
-                        "--reconstruction graph needs {RECON_FILE} beside model.onnx (the same network with \
-                         its reconstruction, `export_ms --recon`)"
+                        "--precision fp16 runs the half-precision network with its reconstruction in the graph \
+                         ({RECON_FP16_FILE}); it needs --reconstruction graph or auto, not engine"
                     ),
                 ))
             }
-            Reconstruction::Graph => true,
-            Reconstruction::Auto => recon.exists() && matches!(placement.device, Device::Cuda(_)),
+            Precision::Fp16 if !half.exists() => {
+                return Err(model_error(
+                    dir,
+                    format!(
+                        "--precision fp16 needs {RECON_FP16_FILE} beside model.onnx (the network in half precision \
+                         with its reconstruction, `export_ms --recon --fp16`)"
+                    ),
+                ))
+            }
+            Precision::Fp16 => true,
+            Precision::Auto => on_gpu && half.exists() && placement.reconstruction != Reconstruction::Engine,
         };
-        if !in_graph && matches!(placement.device, Device::Cuda(_)) {
+        let in_graph = fp16
+            || match placement.reconstruction {
+                Reconstruction::Engine => false,
+                Reconstruction::Graph if !recon.exists() => {
+                    return Err(model_error(
+                        dir,
+                        format!(
+                            "--reconstruction graph needs {RECON_FILE} beside model.onnx (the same network with \
+                             its reconstruction, `export_ms --recon`)"
+                        ),
+                    ))
+                }
+                Reconstruction::Graph => true,
+                Reconstruction::Auto => recon.exists() && on_gpu,
+            };
+        if !in_graph && on_gpu {
             tracing::warn!(
                 variant = %variant,
                 "no {RECON_FILE}: the kernels are applied on the CPU after each GPU inference"
             );
         }
-        let file = if in_graph { recon } else { v2 };
+        let file = match (in_graph, fp16) {
+            (true, true) => half,
+            (true, false) => recon,
+            (false, _) => v2,
+        };
         let net = MultiScaleNetwork::load(env, &file, variant, placement)?;
+        if fp16 && net.info.precision != Precision::Fp16 {
+            return Err(model_error(
+                &file,
+                format!(
+                    "metadata `{}` is `{}`, expected `fp16` in this file",
+                    keys::PRECISION,
+                    net.info.precision.name()
+                ),
+            ));
+        }
         let want = if in_graph { Outputs::Filtered } else { Outputs::Kernels };
         if net.info.outputs != want {
             return Err(model_error(

@@ -148,6 +148,7 @@ impl Settings {
         engine.ort_library = args.ort_library.clone();
         engine.device = args.device;
         engine.reconstruction = args.reconstruction;
+        engine.precision = args.precision;
         engine.albedo_prefilter = args.albedo.albedo_prefilter;
         Settings {
             capacity: args.queue_capacity,

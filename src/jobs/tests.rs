@@ -81,6 +81,7 @@ impl Denoiser for FakeDenoiser {
             sha256: String::new(),
             input_compression: crate::engine::InputCompression::Graph,
             outputs: crate::engine::Outputs::Kernels,
+            precision: crate::engine::Precision::Fp32,
         }]
     }
 

@@ -48,6 +48,9 @@ META_KEYS = (
 META_INPUT_COMPRESSION = "mcdenoise.input_compression"
 # Contract v2 only, optional: `kernels` (absent) or `filtered` (the reconstruction in the graph).
 META_OUTPUTS = "mcdenoise.outputs"
+# Contract v2 only, optional: `fp32` (absent) or `fp16`, the precision the network computes in
+# (a `filtered` graph's inputs, outputs and reconstruction stay float32).
+META_PRECISION = "mcdenoise.precision"
 
 _BASE = (
     "normal.R", "normal.G", "normal.B",

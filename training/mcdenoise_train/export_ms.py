@@ -28,6 +28,13 @@ reconstruction in the graph (`mcdenoise.outputs` `filtered`: outputs `diffuse_fi
 `specular_filtered` `[N,3,H,W]`, the filtered preprocessed colors), which the engine runs
 where the reconstruction belongs on the device (a GPU) rather than in its own CPU code. It
 compresses its inputs itself: the reconstruction needs them uncompressed.
+
+`--recon --fp16` also writes `<variant>/model-recon-fp16.onnx`: the same, with the network
+in half precision (`mcdenoise.precision` `fp16`) for GPUs, where it runs on the tensor cores
+at half the memory traffic. Its inputs, outputs and reconstruction stay float32: the inputs
+are compressed (symlog) in float32 and only then cast, so HDR values beyond half's range
+(65504) reach the network, and the kernels' softmax and the filtering run in float32. The
+export fails unless it is within 5e-3 × max(1, max |torch|) of the float32 network.
 """
 
 from __future__ import annotations
@@ -44,8 +51,8 @@ import onnx
 import torch
 
 from .checkpoint import load_msnet
-from .contract import (COLOR_CHANNELS, FEATURES_FULL, META_INPUT_COMPRESSION, META_OUTPUTS, NOCOV_INDICES,
-                       feature_names, variant_for)
+from .contract import (COLOR_CHANNELS, FEATURES_FULL, META_INPUT_COMPRESSION, META_OUTPUTS, META_PRECISION,
+                       NOCOV_INDICES, feature_names, variant_for)
 from .export import read_metadata as read_metadata_v2
 from .export import write_model
 from .model import symlog
@@ -55,6 +62,9 @@ CONTRACT = 2
 OPSET = 17
 COMPRESSIONS = ("engine", "graph")
 RECON_FILE = "model-recon.onnx"
+RECON_FP16_FILE = "model-recon-fp16.onnx"
+# How far the half-precision network's filtered colors may lie from the float32 network's.
+FP16_TOLERANCE = 5e-3
 FILTERED_OUTPUTS = ("diffuse_filtered", "specular_filtered")
 # The reconstruction's operators, beyond the network's (Shape, Gather, Unsqueeze, Concat: the
 # slices' dynamic bounds).
@@ -133,21 +143,30 @@ def _to_proto(model: MSNet) -> onnx.ModelProto:
 
 class WithReconstruction(torch.nn.Module):
     """`net` and its reconstruction in one graph: the filtered preprocessed color of each
-    component (`recon_ms.reconstruct_component` with the plain filter)."""
+    component (`recon_ms.reconstruct_component` with the plain filter). With `half` the
+    network runs in float16 on inputs compressed in float32 and cast; its kernels and blends
+    are cast back, so that the reconstruction runs in float32."""
 
-    def __init__(self, net: MSNet):
+    def __init__(self, net: MSNet, half: bool = False):
         super().__init__()
-        self.net = net
+        self.net = copy.deepcopy(net).half() if half else net
+        self.half = half
+        if half:
+            self.net.compress_inputs = False
 
     def forward(self, diffuse: torch.Tensor, specular: torch.Tensor, features: torch.Tensor):
         from .recon_ms import filter_plain, reconstruct_component, split_outputs
 
-        k, b = split_outputs(self.net(diffuse, specular, features), self.net.levels)
+        if self.half:
+            outputs = [o.float() for o in self.net(*(symlog(x).half() for x in (diffuse, specular, features)))]
+        else:
+            outputs = self.net(diffuse, specular, features)
+        k, b = split_outputs(outputs, self.net.levels)
         return tuple(reconstruct_component(k[c], b[c], x[:, :3], filter=filter_plain)
                      for c, x in (("diffuse", diffuse), ("specular", specular)))
 
 
-def _recon_proto(model: MSNet) -> onnx.ModelProto:
+def _recon_proto(model: MSNet, half: bool = False) -> onnx.ModelProto:
     h, w = _TRACE_HW
     args = (torch.zeros(1, COLOR_CHANNELS, h, w), torch.zeros(1, COLOR_CHANNELS, h, w),
             torch.zeros(1, model.in_features, h, w))
@@ -156,7 +175,7 @@ def _recon_proto(model: MSNet) -> onnx.ModelProto:
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(WithReconstruction(model), args, buf, dynamo=False,
+        torch.onnx.export(WithReconstruction(model, half), args, buf, dynamo=False,
                           input_names=["diffuse", "specular", "features"], output_names=list(FILTERED_OUTPUTS),
                           dynamic_axes=dynamic, opset_version=OPSET, do_constant_folding=True)
     proto = onnx.load_from_string(buf.getvalue())
@@ -170,8 +189,9 @@ def _recon_proto(model: MSNet) -> onnx.ModelProto:
     return proto
 
 
-def verify_recon(path: str | os.PathLike, model: MSNet, seed: int = 0) -> float:
-    """max |onnxruntime - torch| of a `model-recon.onnx` (relative to max(1, max |torch|))."""
+def verify_recon(path: str | os.PathLike, model: MSNet, seed: int = 0, tolerance: float = 1e-4) -> float:
+    """max |onnxruntime - torch| of a `model-recon.onnx` (relative to max(1, max |torch|)),
+    against the float32 network; fails above `tolerance`."""
     import onnxruntime as ort
 
     n, h, w = _VERIFY_SHAPE
@@ -186,21 +206,26 @@ def verify_recon(path: str | os.PathLike, model: MSNet, seed: int = 0) -> float:
     worst = 0.0
     for name, o, r in zip(FILTERED_OUTPUTS, out, ref):
         diff = float(np.max(np.abs(o - r))) / max(1.0, float(np.max(np.abs(r))))
-        if o.shape != r.shape or not diff <= 1e-4:
+        if o.shape != r.shape or not diff <= tolerance:
             raise RuntimeError(f"{path}: {name} differs from torch ({o.shape} vs {r.shape}, {diff:g})")
         worst = max(worst, diff)
     return worst
 
 
-def export_recon(model: MSNet, path: str | os.PathLike, variant: str, verify: bool = True) -> onnx.ModelProto:
-    """Writes `model` with its reconstruction as `path` (`model-recon.onnx`)."""
+def export_recon(model: MSNet, path: str | os.PathLike, variant: str, verify: bool = True,
+                 half: bool = False) -> onnx.ModelProto:
+    """Writes `model` with its reconstruction as `path` (`model-recon.onnx`; with `half`, the
+    network in float16: `model-recon-fp16.onnx`)."""
     metadata = {**metadata_for(model, variant, "graph"), META_OUTPUTS: "filtered"}
+    if half:
+        metadata[META_PRECISION] = "fp16"
     net = copy.deepcopy(model).cpu().float().eval()
     net.compress_inputs = True
-    proto = _recon_proto(net)
-    write_model(proto, metadata, f"mcdenoise contract v{CONTRACT} {variant}, reconstruction in the graph", path)
+    proto = _recon_proto(net, half)
+    precision = ", network in float16" if half else ""
+    write_model(proto, metadata, f"mcdenoise contract v{CONTRACT} {variant}, reconstruction in the graph{precision}", path)
     if verify:
-        verify_recon(path, net)
+        verify_recon(path, net, tolerance=FP16_TOLERANCE if half else 1e-4)
     return proto
 
 
@@ -275,6 +300,8 @@ def main(argv=None) -> int:
                    help="who applies symlog to the inputs: the engine (default, faster) or the graph")
     p.add_argument("--recon", action="store_true",
                    help=f"also write <variant>/{RECON_FILE}, the reconstruction in the graph (for GPUs)")
+    p.add_argument("--fp16", action="store_true",
+                   help=f"with --recon, also write <variant>/{RECON_FP16_FILE}: the network in half precision")
     add_shape_arguments(p)
     p.add_argument("--head-gain", type=float, default=1.0, help="scale of the heads' weights (random models)")
     a = p.parse_args(argv)
@@ -294,6 +321,8 @@ def main(argv=None) -> int:
         export_onnx(m, path, v, compression=a.compression)
         if a.recon:
             export_recon(m, path.with_name(RECON_FILE), v)
+            if a.fp16:
+                export_recon(m, path.with_name(RECON_FP16_FILE), v, half=True)
         print(f"{path}: {path.stat().st_size} bytes, {m.param_count()} params, {m.flops_per_pixel()} FLOP/px, "
               f"receptive radius {m.receptive_radius()}")
     return 0

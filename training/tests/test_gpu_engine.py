@@ -1,5 +1,6 @@
 """benches/gpu_engine.py, the GPU benchmark against OIDN's CUDA device, run end to end on the
-CPU build with the tiny models: parity of the reconstruction in the graph with the engine's,
+CPU build with the tiny models: parity of the reconstruction in the graph (float32 and half
+precision) with the engine's,
 the daemon's throughput rows and the report's fields (the figures come from a GPU machine)."""
 
 import json
@@ -21,7 +22,11 @@ def test_gpu_engine_bench_runs_on_the_cpu(tmp_path):
                     "--models", str(ROOT / "tests" / "fixtures" / "models" / "tiny-v2"), "--out", str(out)],
                    check=True, capture_output=True, env={**os.environ})
     r = json.loads(out.read_text())
-    assert r["parity"]["reconstruction"] == "graph" and r["parity"]["relative_to_max"] <= 1e-4
-    assert [(row["frame"], row["clients"], row["jobs"]) for row in r["daemon"]] == [("96x64", 1, 2), ("96x64", 2, 4)]
+    fp32, fp16 = r["parity"]
+    assert (fp32["reconstruction"], fp32["precision"]) == ("graph", "fp32") and fp32["relative_to_max"] <= 1e-4
+    # The network in half precision: near the engine's float32 output, not equal to it.
+    assert (fp16["reconstruction"], fp16["precision"]) == ("graph", "fp16") and 0 < fp16["relative_to_max"] <= 2e-2
+    assert [(row["frame"], row["precision"], row["clients"], row["jobs"]) for row in r["daemon"]] == [
+        ("96x64", p, c, j) for p in ("fp32", "fp16") for c, j in ((1, 2), (2, 4))]
     assert all(row["frames_per_s"] > 0 and row["job_stages_ms_median"]["inference"] > 0 for row in r["daemon"])
     assert r["oidn"] is None

@@ -155,6 +155,38 @@ def test_export_with_reconstruction_round_trip(tmp_path):
         verify_recon(path, net)
 
 
+def test_half_precision_export_stays_near_the_float_network(tmp_path):
+    from mcdenoise_train.export_ms import FP16_TOLERANCE, export_recon, verify_recon
+
+    torch.manual_seed(1)
+    net = MSNet(28, **SMALL).eval()
+    with torch.no_grad():
+        for h in [*net.kernel_heads, *net.blend_heads]:
+            h.weight.mul_(20)
+    path = tmp_path / "full" / "model-recon-fp16.onnx"
+    export_recon(net, path, "full", half=True)
+    meta = read_metadata_v2(path)
+    assert (meta["mcdenoise.outputs"], meta["mcdenoise.precision"]) == ("filtered", "fp16")
+    proto = onnx.load(str(path))
+    halves = [i for i in proto.graph.initializer if i.data_type == onnx.TensorProto.FLOAT16]
+    assert len(halves) >= len(list(net.parameters())) // 2  # the weights are stored as half
+    assert all(i.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for i in proto.graph.input)
+    assert all(o.type.tensor_type.elem_type == onnx.TensorProto.FLOAT for o in proto.graph.output)
+    worst = verify_recon(path, net, tolerance=FP16_TOLERANCE)
+    assert 0 < worst <= FP16_TOLERANCE  # half, not float: not exact
+    # HDR inputs beyond half's range are compressed before the cast: finite outputs.
+    import onnxruntime as ort
+
+    d = torch.rand(1, 10, 32, 48) * 1e6
+    out = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
+        None, {"diffuse": d.numpy(), "specular": d.numpy(), "features": torch.rand(1, 28, 32, 48).numpy()})
+    assert all(np.isfinite(o).all() for o in out)
+    with torch.no_grad():
+        net.blend_heads[0].bias.add_(3.0)
+    with pytest.raises(RuntimeError):
+        verify_recon(path, net, tolerance=FP16_TOLERANCE)
+
+
 def test_filter_gradient_matches_autograd():
     """The written-out backward of the training path equals autograd's on the plain loop."""
     g = torch.Generator().manual_seed(6)
