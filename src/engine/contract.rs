@@ -181,14 +181,19 @@ pub enum Precision {
     /// The network in float16 (`model-recon-fp16.onnx`, the reconstruction in its graph);
     /// every contract-v2 variant must then have the file.
     Fp16,
+    /// A file's precision only: quantised to int8 (`mcdenoise_train.quantize`), loaded like
+    /// a float32 one from its own models directory.
+    Int8,
 }
 
 impl Precision {
-    /// The value of [`keys::PRECISION`] (absent = `Fp32`); `Auto` is no file's precision.
+    /// The value of [`keys::PRECISION`]: its first word, `fp32` (or absent), `fp16` or
+    /// `int8`, may be followed by a description. `Auto` is no file's precision.
     pub fn parse(value: Option<&str>) -> Option<Precision> {
-        match value {
+        match value.map(|v| v.split_whitespace().next().unwrap_or("")) {
             None | Some("fp32") => Some(Precision::Fp32),
             Some("fp16") => Some(Precision::Fp16),
+            Some("int8") => Some(Precision::Int8),
             Some(_) => None,
         }
     }
@@ -198,6 +203,7 @@ impl Precision {
             Precision::Auto => "auto",
             Precision::Fp32 => "fp32",
             Precision::Fp16 => "fp16",
+            Precision::Int8 => "int8",
         }
     }
 }
@@ -433,5 +439,17 @@ mod tests {
         assert_eq!(FeatureSet::from_list(&FEATURES_FULL.join(",")), Some(FeatureSet::Full));
         assert_eq!(FeatureSet::from_list(&FEATURES_NOCOV.join(",")), Some(FeatureSet::Nocov));
         assert_eq!(FeatureSet::from_list("normal.R"), None);
+    }
+
+    #[test]
+    fn a_files_precision_is_the_first_word_of_its_key() {
+        assert_eq!(Precision::parse(None), Some(Precision::Fp32));
+        assert_eq!(Precision::parse(Some("fp16")), Some(Precision::Fp16));
+        let quantised = "int8 (QDQ all operators, per-channel weights; heads in float)";
+        assert_eq!(Precision::parse(Some(quantised)), Some(Precision::Int8));
+        assert_eq!(Precision::parse(Some("bf16")), None);
+        // What the command line takes: no int8 there (quantised models are a directory).
+        assert_eq!("fp16".parse::<Precision>(), Ok(Precision::Fp16));
+        assert!("int8".parse::<Precision>().unwrap_err().contains("expected `auto`, `fp32` or `fp16`"));
     }
 }

@@ -354,7 +354,8 @@ impl MultiScaleNetwork {
         let input_compression =
             model.optional(keys::INPUT_COMPRESSION, InputCompression::parse, "`graph` or `engine`")?;
         let outputs = model.optional(keys::OUTPUTS, Outputs::parse, "`kernels` or `filtered`")?;
-        let precision = model.optional(keys::PRECISION, Precision::parse, "`fp32` or `fp16`")?;
+        let precision =
+            model.optional(keys::PRECISION, Precision::parse, "`fp32`, `fp16` or `int8` (then a description)")?;
         if outputs == Outputs::Filtered && input_compression == InputCompression::Engine {
             return Err(model_error(
                 path,
@@ -624,7 +625,7 @@ fn load_variant(
         let (recon, half) = (dir.join(RECON_FILE), dir.join(RECON_FP16_FILE));
         let on_gpu = matches!(placement.device, Device::Cuda(_));
         let fp16 = match placement.precision {
-            Precision::Fp32 => false,
+            Precision::Fp32 | Precision::Int8 => false,
             Precision::Fp16 if placement.reconstruction == Reconstruction::Engine => {
                 return Err(model_error(
                     dir,
