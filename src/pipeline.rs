@@ -113,12 +113,20 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
+/// Opens an input file to be decoded a block at a time rather than read whole: the file's
+/// bytes would sit beside the decoded planes (the decode's peak memory).
+fn open(path: &Path, which: Input) -> Result<std::io::BufReader<std::fs::File>, Failure> {
+    let file = std::fs::File::open(path).map_err(|error| Failure::Read { which, error })?;
+    Ok(std::io::BufReader::with_capacity(1 << 20, file))
+}
+
 /// Reads and decodes one input.
 pub fn decode(path: &Path, which: Input, limits: &Limits) -> Result<Frame, Failure> {
-    let bytes = std::fs::read(path).map_err(|error| Failure::Read { which, error })?;
+    let input = open(path, which)?;
     let frame = match which {
-        Input::Frame => Frame::from_exr_bytes(&bytes, limits),
-        Input::Reference => Frame::reference_from_exr_bytes(&bytes, limits),
+        Input::Frame => Frame::from_exr_reader_carrying(input, limits, &Carry::default(), &ChannelMaps::default())
+            .map(|(frame, _)| frame),
+        Input::Reference => Frame::reference_from_exr_reader(input, limits),
     };
     frame.map_err(|error| Failure::Invalid { which, error })
 }
@@ -126,11 +134,7 @@ pub fn decode(path: &Path, which: Input, limits: &Limits) -> Result<Frame, Failu
 /// Reads and decodes the frame to denoise, with what its output carries.
 fn decode_carrying(request: &Request<'_>, carry: &Carry) -> Result<(Frame, Carried), Failure> {
     let which = Input::Frame;
-    let file = std::fs::File::open(request.frame).map_err(|error| Failure::Read { which, error })?;
-    // Read a block at a time rather than whole: the file's bytes would sit beside the
-    // decoded planes (the decode's peak memory).
-    let input = std::io::BufReader::with_capacity(1 << 20, file);
-    Frame::from_exr_reader_carrying(input, &request.limits, carry, &request.channel_maps)
+    Frame::from_exr_reader_carrying(open(request.frame, which)?, &request.limits, carry, &request.channel_maps)
         .map_err(|error| Failure::Invalid { which, error })
 }
 

@@ -160,15 +160,27 @@ fn a_file_read_a_block_at_a_time_decodes_and_fails_as_its_bytes_do() {
             &Carry::default(),
             &ChannelMaps::default(),
         );
-        (from_file.map(|(f, _)| f), from_bytes.map(|(f, _)| f))
+        // References (`--reference`, the daemon's reference uploads) are read the same way.
+        let file = std::io::BufReader::with_capacity(64, std::fs::File::open(&path).unwrap());
+        let reference = (
+            Frame::reference_from_exr_reader(file, &Limits::default()),
+            Frame::reference_from_exr_bytes(&bytes[..cut], &Limits::default()),
+        );
+        ((from_file.map(|(f, _)| f), from_bytes.map(|(f, _)| f)), reference)
     };
-    let (frame, _) = read(bytes.len());
+    let ((frame, _), (reference, reference_bytes)) = read(bytes.len());
     assert_same_as_planes(&frame.unwrap(), &planes, 0.0);
+    let (reference, reference_bytes) = (reference.unwrap(), reference_bytes.unwrap());
+    assert_eq!(reference.color(), reference_bytes.color());
+    assert!(reference.color().iter().flatten().any(|&v| v != 0.0));
     for cut in [0, 10, bytes.len() / 3, bytes.len() - 7] {
-        let (from_file, from_bytes) = read(cut);
-        let (a, b) = (from_file.unwrap_err(), from_bytes.unwrap_err());
-        assert!(matches!(a, FrameError::Truncated(_) | FrameError::Corrupt(_)), "cut at {cut}: {a:?}");
-        assert_eq!(a, b, "cut at {cut}");
+        let ((from_file, from_bytes), (reference, reference_bytes)) = read(cut);
+        for (a, b) in
+            [(from_file.unwrap_err(), from_bytes.unwrap_err()), (reference.unwrap_err(), reference_bytes.unwrap_err())]
+        {
+            assert!(matches!(a, FrameError::Truncated(_) | FrameError::Corrupt(_)), "cut at {cut}: {a:?}");
+            assert_eq!(a, b, "cut at {cut}");
+        }
     }
 }
 

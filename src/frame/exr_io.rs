@@ -127,21 +127,17 @@ pub(super) struct Decoded {
     pub image: ImageAttributes,
     /// Each part's own attributes (name, data window origin, custom attributes).
     pub parts: Vec<LayerAttributes>,
-    /// Every channel, named by its full name (see [`decode`]), with the index of its part.
+    /// Every channel, named by its full name (see [`decode_from`]), with the index of its part.
     pub channels: Vec<(usize, AnyChannel<FlatSamples>)>,
 }
 
-/// Reads every channel of every part, in the file's sample types.
+/// Reads every channel of every part, in the file's sample types, from `input` (a file
+/// read a block at a time, or bytes in a cursor). The input is read three times from its
+/// start: the headers, the chunk check, the pixels; an I/O error reads as a truncated or
+/// corrupt file.
 ///
 /// In a multi-part file a channel's full name is `<part name>.<channel>`, unless the
 /// channel name already starts with the part name.
-pub(super) fn decode(bytes: &[u8], limits: &Limits) -> std::result::Result<Decoded, FrameError> {
-    decode_from(Cursor::new(bytes), limits)
-}
-
-/// [`decode`] from a reader (a file: only a block at a time is in memory beside the
-/// decoded channels). The input is read three times from its start: the headers, the
-/// chunk check, the pixels; an I/O error reads as a truncated or corrupt file.
 pub(super) fn decode_from(mut input: impl Read + Seek, limits: &Limits) -> std::result::Result<Decoded, FrameError> {
     let rewind = |input: &mut dyn Seek| input.seek(SeekFrom::Start(0)).map(drop).map_err(|e| map_exr_error(e.into()));
     let HeaderInfo { width, height, .. } = read_header(&mut input, limits)?;
@@ -184,10 +180,10 @@ pub(super) fn decode_from(mut input: impl Read + Seek, limits: &Limits) -> std::
 
 /// Reads every channel of every part as f32: `(width, height, [(full name, plane)])`.
 pub(super) fn read_planes(
-    bytes: &[u8],
+    input: impl Read + Seek,
     limits: &Limits,
 ) -> std::result::Result<(usize, usize, NamedPlanes), FrameError> {
-    let decoded = decode(bytes, limits)?;
+    let decoded = decode_from(input, limits)?;
     let planes = decoded.channels.into_iter().map(|(_, c)| (c.name.to_string(), to_plane(c.sample_data))).collect();
     Ok((decoded.width, decoded.height, planes))
 }

@@ -348,7 +348,15 @@ impl Frame {
 
     /// Reads a reference frame: only a color is needed (`R,G,B`, or diffuse and specular).
     pub fn reference_from_exr_bytes(bytes: &[u8], limits: &Limits) -> Result<Frame, FrameError> {
-        let (w, h, planes) = exr_io::read_planes(bytes, limits)?;
+        Frame::reference_from_exr_reader(std::io::Cursor::new(bytes), limits)
+    }
+
+    /// [`Frame::reference_from_exr_bytes`] from a reader, such as a buffered file.
+    pub fn reference_from_exr_reader(
+        input: impl std::io::Read + std::io::Seek,
+        limits: &Limits,
+    ) -> Result<Frame, FrameError> {
+        let (w, h, planes) = exr_io::read_planes(input, limits)?;
         let names: Vec<&str> = planes.iter().map(|(n, _)| n.as_str()).collect();
         check_reference(&names)?;
         let required = reference_buffers(&names);
