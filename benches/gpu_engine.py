@@ -10,8 +10,9 @@ Synthetic frames with every channel (`mcdenoise_train.frames.synthetic_frame`) a
   `model-recon.onnx`; on the CPU, asked for) against the CPU with the engine's own
   reconstruction, on a small frame: the largest difference relative to the largest value,
   for each of `--precisions` (`fp16`: the network in half precision, `model-recon-fp16.onnx`);
-- the daemon (`serve --device --precision`, `--workers` workers, whole frames: `--tile-v2 0`),
-  for each precision: `--jobs`
+- the daemon (`serve --device --precision --io-binding`, `--workers` workers, whole frames:
+  `--tile-v2 0`), for each precision and each of `--io-bindings` (ONNX Runtime's I/O binding,
+  page-locked tensors on a GPU, against tensors over the engine's buffers): `--jobs`
   copies of each frame submitted by each of `--clients` concurrent clients in turn; frames per
   second, latency, and the jobs' own stage timings (median), whose `inference` is the time
   on the device once sessions are warm (the first job of each size is left out: it includes
@@ -76,9 +77,10 @@ def parity(a, work: Path, precision: str) -> dict:
             "relative_to_max": worst / max(scale, 1e-12)}
 
 
-def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str) -> list[dict]:
+def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str, io_binding: str) -> list[dict]:
     rows = []
-    d = Daemon(a, work, "serve", None, ("--device", a.device, "--tile-v2", "0", "--precision", precision))
+    d = Daemon(a, work, "serve", None, ("--device", a.device, "--tile-v2", "0", "--precision", precision,
+                                        "--io-binding", io_binding))
     try:
         d.wait_ready()
         for size, path in frames.items():
@@ -107,11 +109,12 @@ def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str) -> list[
                     raise RuntimeError(f"{size}, {clients} clients: {len(jobs)} of {clients * a.jobs} jobs succeeded")
                 stages = {k: statistics.median(j["timings_ms"][k] for j in jobs)
                           for k in jobs[0]["timings_ms"] if isinstance(jobs[0]["timings_ms"][k], (int, float))}
-                rows.append({"frame": size, "precision": precision, "clients": clients, "jobs": len(jobs),
+                rows.append({"frame": size, "precision": precision, "io_binding": io_binding,
+                             "clients": clients, "jobs": len(jobs),
                              "frames_per_s": len(jobs) / wall,
                              "latency_p50_s": statistics.median(j["latency_s"] for j in jobs),
                              "job_stages_ms_median": stages})
-                print(f"{size} {precision}, {clients} clients: {len(jobs) / wall:.2f} frames/s, "
+                print(f"{size} {precision}, I/O binding {io_binding}, {clients} clients: {len(jobs) / wall:.2f} frames/s, "
                       f"inference {stages.get('inference', 0):.1f} ms", file=sys.stderr)
     finally:
         d.stop()
@@ -138,6 +141,7 @@ def main() -> int:
     p.add_argument("--jobs", type=int, default=8, help="jobs per client and configuration")
     p.add_argument("--clients", default="1,4")
     p.add_argument("--precisions", default="fp32,fp16", help="the networks' precisions to run (`--precision`)")
+    p.add_argument("--io-bindings", default="on,off", help="ONNX Runtime's I/O binding settings to run (`--io-binding`)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--threads", type=int, default=4, help="threads per worker (pre- and post-processing)")
     p.add_argument("--models", default=str(ROOT / "models"))
@@ -160,7 +164,8 @@ def main() -> int:
         "workers": a.workers,
         "threads_per_worker": a.threads,
         "parity": [parity(a, work, p) for p in precisions],
-        "daemon": [row for p in precisions for row in daemon_runs(a, work, frames, p)],
+        "daemon": [row for p in precisions for io in a.io_bindings.split(",") if io
+                   for row in daemon_runs(a, work, frames, p, io)],
         "oidn": oidn(a, sizes) if a.oidn_benchmark else None,
     }
     gpu = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip() if a.device != "cpu" else ""

@@ -128,6 +128,11 @@ pub struct RunArgs {
     /// where the variant has that file, else `fp32`).
     #[arg(long, env = "MCDENOISE_PRECISION", default_value = "auto", value_parser = parse_precision)]
     pub precision: engine::Precision,
+    /// ONNX Runtime's I/O binding for contract-v2 networks: `on` (the region's tensors in
+    /// buffers ONNX Runtime allocated once per region shape, page-locked host memory on a
+    /// GPU), `off`, or `auto` (`on` on a GPU, `off` on the CPU).
+    #[arg(long, env = "MCDENOISE_IO_BINDING", value_enum, default_value_t)]
+    pub io_binding: engine::IoBinding,
     #[command(flatten)]
     pub frame: FrameArgs,
 }
@@ -205,6 +210,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     config.device = args.device;
     config.reconstruction = args.reconstruction;
     config.precision = args.precision;
+    config.io_binding = args.io_binding;
     config.albedo_prefilter = args.albedo.albedo_prefilter;
 
     let t = Instant::now();
@@ -253,6 +259,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "reconstruction": reconstruction.to_string(),
         "precision": used.map_or(engine::Precision::Fp32, |m| m.precision).name(),
+        "io_binding": config.io_binding.enabled(engine.device()),
         "threads": config.threads,
         "device": engine.device().to_string(),
         "flops_per_pixel": flops,

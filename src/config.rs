@@ -169,6 +169,11 @@ pub struct ServeArgs {
     /// where the variant has that file, else `fp32`).
     #[arg(long, env = "MCDENOISE_PRECISION", default_value = "auto", value_parser = crate::cli::parse_precision, help_heading = "Models and workers")]
     pub precision: crate::engine::Precision,
+    /// ONNX Runtime's I/O binding for contract-v2 networks: `on` (the region's tensors in
+    /// buffers ONNX Runtime allocated once per region shape, page-locked host memory on a
+    /// GPU), `off`, or `auto` (`on` on a GPU, `off` on the CPU).
+    #[arg(long, env = "MCDENOISE_IO_BINDING", value_enum, default_value_t, help_heading = "Models and workers")]
+    pub io_binding: crate::engine::IoBinding,
     /// Workers, each with its own ONNX Runtime sessions, denoising one job at a time
     /// (default: cores / threads-per-worker, at least 1).
     #[arg(long, env = "MCDENOISE_WORKERS", help_heading = "Models and workers")]
@@ -436,6 +441,7 @@ impl ServeArgs {
             "device": self.device.to_string(),
             "reconstruction": self.reconstruction.to_string(),
             "precision": self.precision.name(),
+            "io_binding": self.io_binding.name(),
             "workers": self.workers(),
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,

@@ -9,8 +9,8 @@ use std::path::Path;
 
 use common::*;
 use mcdenoise::engine::{
-    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, Options, Outputs,
-    Precision, Reconstruction, Variant,
+    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding, Options,
+    Outputs, Precision, Reconstruction, Variant,
 };
 use model_dirs::*;
 
@@ -170,6 +170,34 @@ fn the_reconstruction_in_the_graph_gives_the_engines_output() {
     // On the CPU, `auto` keeps the engine's reconstruction (its own code is the faster there).
     let auto = engine_reconstructing(&tiny_v2(), 0, Reconstruction::Auto);
     assert!(auto.models().iter().all(|m| m.outputs == Outputs::Kernels));
+}
+
+#[test]
+fn io_binding_gives_the_same_output() {
+    // The bound path places the tensors where a GPU reads them by DMA; here ONNX Runtime's
+    // CPU memory. Tiles of 32 on 90×70 give regions of several shapes, so the bound tensors
+    // are allocated again between regions and reused where a shape repeats.
+    let at = |io_binding: IoBinding, reconstruction: Reconstruction| {
+        let mut config = EngineConfig::new(tiny_v2());
+        (config.threads, config.tile_v2, config.reconstruction, config.io_binding) =
+            (2, 32, reconstruction, io_binding);
+        Engine::load(&config).unwrap()
+    };
+    for reconstruction in [Reconstruction::Engine, Reconstruction::Graph] {
+        let (mut bound, mut plain) = (at(IoBinding::On, reconstruction), at(IoBinding::Off, reconstruction));
+        for cov in [true, false] {
+            let frame = synthetic_frame(90, 70, cov);
+            let options = Options { components: true, ..Options::default() };
+            let a = bound.denoise_with(&frame, options, &mut |_| true).unwrap();
+            let b = plain.denoise_with(&frame, options, &mut |_| true).unwrap();
+            assert!(a.tiles >= 9, "{} tiles", a.tiles);
+            for c in 0..3 {
+                assert!(a.color[c].iter().all(|v| v.is_finite()));
+                assert_eq!(a.color[c], b.color[c], "{reconstruction:?}, cov {cov}, color {c}");
+                assert_eq!(parts(&a).specular[c], parts(&b).specular[c], "{reconstruction:?}, cov {cov}, specular {c}");
+            }
+        }
+    }
 }
 
 #[test]

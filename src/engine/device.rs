@@ -54,6 +54,39 @@ impl fmt::Display for Device {
     }
 }
 
+/// Whether a contract-v2 network's tensors go through ONNX Runtime's I/O binding: the
+/// region's inputs written into, and its outputs read from, buffers ONNX Runtime allocated
+/// once per region shape (on a GPU page-locked host memory, which crosses PCIe by DMA
+/// without the staging copy pageable memory needs), instead of tensors over the engine's
+/// own buffers created for each run.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum IoBinding {
+    /// On a GPU; off on the CPU, where ONNX Runtime reads the engine's buffers directly.
+    #[default]
+    Auto,
+    On,
+    Off,
+}
+
+impl IoBinding {
+    pub fn name(self) -> &'static str {
+        match self {
+            IoBinding::Auto => "auto",
+            IoBinding::On => "on",
+            IoBinding::Off => "off",
+        }
+    }
+
+    /// Whether the binding is used on `device` (resolved: `cpu` or `cuda:N`).
+    pub fn enabled(self, device: Device) -> bool {
+        match self {
+            IoBinding::On => true,
+            IoBinding::Off => false,
+            IoBinding::Auto => matches!(device, Device::Cuda(_)),
+        }
+    }
+}
+
 /// Whether the loaded ONNX Runtime library has the CUDA execution provider.
 pub fn cuda_provider_available() -> bool {
     CUDA::is_available().unwrap_or(false)
@@ -154,6 +187,14 @@ mod tests {
         for bad in ["gpu", "cuda:", "cuda:-1", "cuda:x", "CUDA"] {
             let err = bad.parse::<Device>().unwrap_err();
             assert!(err.contains(&format!("`{bad}`")) && err.contains("cuda:N"), "{err}");
+        }
+    }
+
+    #[test]
+    fn io_binding_is_on_by_default_on_a_gpu_only() {
+        use IoBinding::*;
+        for (binding, cpu, gpu) in [(Auto, false, true), (On, true, true), (Off, false, false)] {
+            assert_eq!((binding.enabled(Device::Cpu), binding.enabled(Device::Cuda(1))), (cpu, gpu), "{binding:?}");
         }
     }
 

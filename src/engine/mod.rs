@@ -29,7 +29,7 @@ use serde::Serialize;
 
 pub use albedo::AlbedoPrefilter;
 pub use contract::{Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, Variant};
-pub use device::Device;
+pub use device::{Device, IoBinding};
 pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
 pub use preprocess::{FrameStats, Rect, EPS};
@@ -80,6 +80,9 @@ pub struct EngineConfig {
     /// The contract-v2 networks' precision ([`Precision`]; `auto`: half on a GPU where the
     /// variant has `model-recon-fp16.onnx`).
     pub precision: Precision,
+    /// Whether contract-v2 networks run through ONNX Runtime's I/O binding ([`IoBinding`];
+    /// `auto`: on a GPU).
+    pub io_binding: IoBinding,
     /// Whether the albedo is prefiltered by its variance ([`albedo`]; `on` unless turned off).
     pub albedo_prefilter: AlbedoPrefilter,
 }
@@ -96,6 +99,7 @@ impl EngineConfig {
             device: Device::Cpu,
             reconstruction: Reconstruction::Auto,
             precision: Precision::Auto,
+            io_binding: IoBinding::Auto,
             albedo_prefilter: AlbedoPrefilter::On,
         }
     }
@@ -208,8 +212,13 @@ impl Engine {
         let threads = config.threads.max(1);
         let library = runtime::library().map_or_else(|| "loaded".to_string(), |p| p.display().to_string());
         let device = config.device.resolve(&library).map_err(EngineError::Runtime)?;
-        let placement =
-            model::Placement { threads, device, reconstruction: config.reconstruction, precision: config.precision };
+        let placement = model::Placement {
+            threads,
+            device,
+            reconstruction: config.reconstruction,
+            precision: config.precision,
+            io_binding: config.io_binding,
+        };
         let models = model::load_models(env, &config.models_dir, placement)?;
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)

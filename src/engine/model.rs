@@ -4,8 +4,9 @@
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
+use ort::memory::{AllocationDevice, Allocator, AllocatorType, MemoryInfo, MemoryType};
 use ort::session::{builder::GraphOptimizationLevel, Session};
-use ort::value::{TensorRef, ValueType};
+use ort::value::{Tensor, TensorRef, ValueType};
 use serde::Serialize;
 use sha2::Digest;
 
@@ -13,7 +14,7 @@ use super::contract::{
     self, keys, Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, Variant, COLOR_CHANNELS,
     TAPS,
 };
-use super::device::Device;
+use super::device::{Device, IoBinding};
 use super::multiscale::Pyramid;
 use super::EngineError;
 
@@ -86,11 +87,19 @@ pub struct Placement {
     pub reconstruction: Reconstruction,
     /// The contract-v2 network's precision (with `fp16`, the half-precision file).
     pub precision: Precision,
+    /// Whether contract-v2 networks run through ONNX Runtime's I/O binding ([`IoBinding`]).
+    pub io_binding: IoBinding,
 }
 
 impl Placement {
     pub fn cpu(threads: usize) -> Placement {
-        Placement { threads, device: Device::Cpu, reconstruction: Reconstruction::Engine, precision: Precision::Fp32 }
+        Placement {
+            threads,
+            device: Device::Cpu,
+            reconstruction: Reconstruction::Engine,
+            precision: Precision::Fp32,
+            io_binding: IoBinding::Off,
+        }
     }
 }
 
@@ -315,6 +324,48 @@ pub struct MultiScaleNetwork {
     pub info: ModelInfo,
     /// Region sides must be multiples of this (2^(levels − 1)).
     pub size_multiple: usize,
+    /// With I/O binding ([`IoBinding`]), where the tensors are placed, and those of the last
+    /// region shape; `None` without.
+    binding: Option<Binding>,
+}
+
+/// The I/O binding of a [`MultiScaleNetwork`]: the memory its tensors live in (page-locked
+/// host memory for a CUDA session, ONNX Runtime's CPU memory otherwise) and the tensors
+/// bound for the last region shape, reused while the shape repeats (a frame's tiles have
+/// at most four shapes, and the inner ones come in runs).
+struct Binding {
+    inputs_memory: MemoryInfo<'static>,
+    outputs_memory: MemoryInfo<'static>,
+    bound: Option<Bound>,
+}
+
+/// Input tensors `diffuse`, `specular`, `features` of one region shape, with the binding
+/// that hands them (and every output, in `Binding::outputs_memory`) to the session.
+struct Bound {
+    /// `[channels of features, h, w]`.
+    dims: [usize; 3],
+    io: ort::session::IoBinding,
+    inputs: [Tensor<f32>; 3],
+}
+
+impl Binding {
+    /// Where a `device` session's bound tensors live.
+    fn new(device: Device) -> ort::Result<Binding> {
+        let (inputs_memory, outputs_memory) = match device {
+            Device::Cuda(n) => {
+                let id = i32::try_from(n).unwrap_or(i32::MAX);
+                (
+                    MemoryInfo::new(AllocationDevice::CUDA_PINNED, id, AllocatorType::Device, MemoryType::CPUInput)?,
+                    MemoryInfo::new(AllocationDevice::CUDA_PINNED, id, AllocatorType::Device, MemoryType::CPUOutput)?,
+                )
+            }
+            Device::Cpu | Device::Auto => {
+                let cpu = || MemoryInfo::new(AllocationDevice::CPU, 0, AllocatorType::Device, MemoryType::Default);
+                (cpu()?, cpu()?)
+            }
+        };
+        Ok(Binding { inputs_memory, outputs_memory, bound: None })
+    }
 }
 
 /// Largest pyramid depth the engine accepts (a 2^15-pixel pooling grid).
@@ -414,7 +465,14 @@ impl MultiScaleNetwork {
             outputs,
             precision,
         };
-        Ok(MultiScaleNetwork { session: model.session, info, size_multiple })
+        let binding = if placement.io_binding.enabled(placement.device) {
+            let binding = Binding::new(placement.device)
+                .map_err(|e| model_error(path, format!("cannot set up ONNX Runtime's I/O binding: {e}")))?;
+            Some(binding)
+        } else {
+            None
+        };
+        Ok(MultiScaleNetwork { session: model.session, info, size_multiple, binding })
     }
 
     /// Runs the graph on one region (sides multiples of `size_multiple`; `diffuse` and
@@ -482,6 +540,10 @@ impl MultiScaleNetwork {
         let c = features.len() / (h * w);
         let name = self.info.variant;
         let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
+        if let Some(binding) = &mut self.binding {
+            let io = bind(&self.session, binding, [diffuse, specular, features], [c, h, w]).map_err(fail)?;
+            return self.session.run_binding(io).map_err(fail);
+        }
         let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
         let specular = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], specular)).map_err(fail)?;
         let features = TensorRef::from_array_view(([1usize, c, h, w], features)).map_err(fail)?;
@@ -489,6 +551,36 @@ impl MultiScaleNetwork {
             .run(ort::inputs!["diffuse" => diffuse, "specular" => specular, "features" => features])
             .map_err(fail)
     }
+}
+
+/// Writes one region's inputs (`[diffuse, specular, features]`, features of `dims` =
+/// `[channels, h, w]`) into the bound tensors, allocating and binding them first where the
+/// shape changed, and binds them again: on a GPU that queues their copy to the device.
+fn bind<'b>(
+    session: &Session,
+    binding: &'b mut Binding,
+    data: [&[f32]; 3],
+    dims: [usize; 3],
+) -> ort::Result<&'b ort::session::IoBinding> {
+    let [c, h, w] = dims;
+    if binding.bound.as_ref().is_none_or(|b| b.dims != dims) {
+        // The previous shape's tensors are freed before the new ones are allocated.
+        binding.bound = None;
+        let allocator = Allocator::new(session, binding.inputs_memory.clone())?;
+        let tensor = |channels: usize| Tensor::<f32>::new(&allocator, [1, channels, h, w]);
+        let inputs = [tensor(COLOR_CHANNELS)?, tensor(COLOR_CHANNELS)?, tensor(c)?];
+        let mut io = session.create_binding()?;
+        for output in session.outputs() {
+            io.bind_output_to_device(output.name(), &binding.outputs_memory)?;
+        }
+        binding.bound = Some(Bound { dims, io, inputs });
+    }
+    let bound = binding.bound.as_mut().expect("bound above");
+    for ((name, tensor), src) in ["diffuse", "specular", "features"].into_iter().zip(&mut bound.inputs).zip(data) {
+        tensor.extract_tensor_mut().1.copy_from_slice(src);
+        bound.io.bind_input(name, tensor)?;
+    }
+    Ok(&bound.io)
 }
 
 /// The data of output `output`, checked to be `[1, channels, rows, columns]` (`dims`) for a

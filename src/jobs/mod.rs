@@ -149,6 +149,7 @@ impl Settings {
         engine.device = args.device;
         engine.reconstruction = args.reconstruction;
         engine.precision = args.precision;
+        engine.io_binding = args.io_binding;
         engine.albedo_prefilter = args.albedo.albedo_prefilter;
         Settings {
             capacity: args.queue_capacity,

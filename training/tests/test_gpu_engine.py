@@ -1,7 +1,7 @@
 """benches/gpu_engine.py, the GPU benchmark against OIDN's CUDA device, run end to end on the
 CPU build with the tiny models: parity of the reconstruction in the graph (float32 and half
 precision) with the engine's,
-the daemon's throughput rows and the report's fields (the figures come from a GPU machine)."""
+the daemon's throughput rows (with and without ONNX Runtime's I/O binding) and the report's fields (the figures come from a GPU machine)."""
 
 import json
 import os
@@ -26,7 +26,7 @@ def test_gpu_engine_bench_runs_on_the_cpu(tmp_path):
     assert (fp32["reconstruction"], fp32["precision"]) == ("graph", "fp32") and fp32["relative_to_max"] <= 1e-4
     # The network in half precision: near the engine's float32 output, not equal to it.
     assert (fp16["reconstruction"], fp16["precision"]) == ("graph", "fp16") and 0 < fp16["relative_to_max"] <= 2e-2
-    assert [(row["frame"], row["precision"], row["clients"], row["jobs"]) for row in r["daemon"]] == [
-        ("96x64", p, c, j) for p in ("fp32", "fp16") for c, j in ((1, 2), (2, 4))]
+    assert [(row["frame"], row["precision"], row["io_binding"], row["clients"], row["jobs"]) for row in r["daemon"]] == [
+        ("96x64", p, io, c, j) for p in ("fp32", "fp16") for io in ("on", "off") for c, j in ((1, 2), (2, 4))]
     assert all(row["frames_per_s"] > 0 and row["job_stages_ms_median"]["inference"] > 0 for row in r["daemon"])
     assert r["oidn"] is None
