@@ -248,10 +248,11 @@ impl Frame {
         }
     }
 
-    /// Replaces a buffer's planes by f32 ones (e.g. a filtered copy computed from them),
-    /// without copying what it held.
+    /// Replaces a buffer's planes (e.g. by a filtered copy computed from them), without
+    /// copying what it held; stored as decoded planes are (f16 where the buffer allows it
+    /// and every sample fits).
     pub fn set_planes(&mut self, buffer: Buffer, planes: Vec<Plane>) {
-        self.buffers[buffer as usize] = Some(Arc::new(Stored::F32(planes)));
+        self.buffers[buffer as usize] = Some(Arc::new(Stored::new(buffer, planes)));
     }
 
     /// Drops a buffer (e.g. covariance, to run the no-covariance model on a full frame).

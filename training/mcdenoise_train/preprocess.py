@@ -128,7 +128,9 @@ def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) 
             out[i] = src
     out = np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=0.0)  # half-float files overflow to inf
     if albedo_prefilter:
-        out[ALBEDO] = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]])
+        a = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]])
+        # Stored as the engine stores it: in half float where every sample fits.
+        out[ALBEDO] = a.astype(np.float16).astype(np.float32) if np.abs(a).max(initial=0.0) <= HALF_MAX else a
     return out, float(max(out[DEPTH].max(), 0.0)), float(max(out[COV].max(), 0.0))
 
 
