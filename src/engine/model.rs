@@ -334,6 +334,9 @@ pub struct MultiScaleNetwork {
 /// bound for the last region shape, reused while the shape repeats (a frame's tiles have
 /// at most four shapes, and the inner ones come in runs).
 struct Binding {
+    /// `--io-binding on`: a failure to bind is the job's error; with `auto` the network
+    /// goes on without the binding.
+    required: bool,
     inputs_memory: MemoryInfo<'static>,
     outputs_memory: MemoryInfo<'static>,
     bound: Option<Bound>,
@@ -350,7 +353,7 @@ struct Bound {
 
 impl Binding {
     /// Where a `device` session's bound tensors live.
-    fn new(device: Device) -> ort::Result<Binding> {
+    fn new(device: Device, required: bool) -> ort::Result<Binding> {
         let (inputs_memory, outputs_memory) = match device {
             Device::Cuda(n) => {
                 let id = i32::try_from(n).unwrap_or(i32::MAX);
@@ -364,7 +367,7 @@ impl Binding {
                 (cpu()?, cpu()?)
             }
         };
-        Ok(Binding { inputs_memory, outputs_memory, bound: None })
+        Ok(Binding { required, inputs_memory, outputs_memory, bound: None })
     }
 }
 
@@ -466,7 +469,7 @@ impl MultiScaleNetwork {
             precision,
         };
         let binding = if placement.io_binding.enabled(placement.device) {
-            let binding = Binding::new(placement.device)
+            let binding = Binding::new(placement.device, placement.io_binding == IoBinding::On)
                 .map_err(|e| model_error(path, format!("cannot set up ONNX Runtime's I/O binding: {e}")))?;
             Some(binding)
         } else {
@@ -541,8 +544,17 @@ impl MultiScaleNetwork {
         let name = self.info.variant;
         let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
         if let Some(binding) = &mut self.binding {
-            let io = bind(&self.session, binding, [diffuse, specular, features], [c, h, w]).map_err(fail)?;
-            return self.session.run_binding(io).map_err(fail);
+            if let Err(e) = bind(&self.session, binding, [diffuse, specular, features], [c, h, w]) {
+                if binding.required {
+                    return Err(fail(e));
+                }
+                // `auto`: the job goes on with the tensors over the engine's buffers.
+                tracing::warn!(variant = %name, "ONNX Runtime's I/O binding failed, running without it: {e}");
+                self.binding = None;
+            }
+        }
+        if let Some(Binding { bound: Some(bound), .. }) = &self.binding {
+            return self.session.run_binding(&bound.io).map_err(fail);
         }
         let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
         let specular = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], specular)).map_err(fail)?;
@@ -556,12 +568,7 @@ impl MultiScaleNetwork {
 /// Writes one region's inputs (`[diffuse, specular, features]`, features of `dims` =
 /// `[channels, h, w]`) into the bound tensors, allocating and binding them first where the
 /// shape changed, and binds them again: on a GPU that queues their copy to the device.
-fn bind<'b>(
-    session: &Session,
-    binding: &'b mut Binding,
-    data: [&[f32]; 3],
-    dims: [usize; 3],
-) -> ort::Result<&'b ort::session::IoBinding> {
+fn bind(session: &Session, binding: &mut Binding, data: [&[f32]; 3], dims: [usize; 3]) -> ort::Result<()> {
     let [c, h, w] = dims;
     if binding.bound.as_ref().is_none_or(|b| b.dims != dims) {
         // The previous shape's tensors are freed before the new ones are allocated.
@@ -580,7 +587,7 @@ fn bind<'b>(
         tensor.extract_tensor_mut().1.copy_from_slice(src);
         bound.io.bind_input(name, tensor)?;
     }
-    Ok(&bound.io)
+    Ok(())
 }
 
 /// The data of output `output`, checked to be `[1, channels, rows, columns]` (`dims`) for a
