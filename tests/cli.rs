@@ -247,6 +247,34 @@ fn run_ok(input: &std::path::Path, output: &std::path::Path, extra: &[&str]) {
 }
 
 #[test]
+fn run_io_binding_is_reported_and_changes_no_pixel() {
+    // The contract-v2 fixtures, in tiles of several shapes; on the CPU `auto` leaves the
+    // binding off, `on` uses ONNX Runtime's CPU memory for the bound tensors.
+    let tmp = tempfile::tempdir().unwrap();
+    let input = write_frame(tmp.path(), "in.exr", 70, 50, true);
+    let v2 = tiny_models().with_file_name("tiny-v2");
+    let run = |binding: &str| {
+        let out = tmp.path().join(format!("out-{binding}.exr"));
+        let res = bin()
+            .args(["run", input.to_str().unwrap(), "-o", out.to_str().unwrap(), "--models", v2.to_str().unwrap()])
+            .args(["--tile-v2", "32", "--threads", "1", "--io-binding", binding])
+            .output()
+            .unwrap();
+        assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+        let report: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap();
+        let frame = Frame::reference_from_exr_bytes(&std::fs::read(out).unwrap(), &Limits::default()).unwrap();
+        (report["io_binding"].as_bool().unwrap(), report["tiles"].as_u64().unwrap(), frame.color())
+    };
+    let (on, off, auto) = (run("on"), run("off"), run("auto"));
+    assert_eq!((on.0, off.0, auto.0), (true, false, false));
+    assert!(on.1 >= 4, "{} tiles", on.1);
+    assert!(on.2 == off.2 && off.2 == auto.2, "the outputs differ");
+    let res = bin().args(["run", "x.exr", "-o", "y.exr", "--io-binding", "gpu"]).output().unwrap();
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success() && stderr.contains("--io-binding") && stderr.contains("on"), "{stderr}");
+}
+
+#[test]
 fn run_keeps_overscan_attributes_alpha_and_with_all_every_aov() {
     // A 256×256 display window rendered with 8 pixels of overscan (data window −8..263),
     // anamorphic pixels; and the same image without the overscan.
