@@ -587,7 +587,8 @@ fn bind(session: &Session, binding: &mut Binding, data: [&[f32]; 3], dims: [usiz
         tensor.extract_tensor_mut().1.copy_from_slice(src);
         bound.io.bind_input(name, tensor)?;
     }
-    Ok(())
+    // The copies to the device are done before the run reads them (a no-op on the CPU).
+    bound.io.synchronize_inputs()
 }
 
 /// The data of output `output`, checked to be `[1, channels, rows, columns]` (`dims`) for a
