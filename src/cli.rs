@@ -259,7 +259,8 @@ pub fn run(args: RunArgs) -> Result<()> {
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "reconstruction": reconstruction.to_string(),
         "precision": used.map_or(engine::Precision::Fp32, |m| m.precision).name(),
-        "io_binding": config.io_binding.enabled(engine.device()),
+        // Contract-v1 pairs run without it.
+        "io_binding": contract == 2 && config.io_binding.enabled(engine.device()),
         "threads": config.threads,
         "device": engine.device().to_string(),
         "flops_per_pixel": flops,

@@ -441,7 +441,7 @@ impl ServeArgs {
             "device": self.device.to_string(),
             "reconstruction": self.reconstruction.to_string(),
             "precision": self.precision.name(),
-            "io_binding": self.io_binding.name(),
+            "io_binding": self.io_binding,
             "workers": self.workers(),
             "threads_per_worker": self.threads_per_worker(),
             "tile": self.tile,

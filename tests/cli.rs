@@ -269,6 +269,23 @@ fn run_io_binding_is_reported_and_changes_no_pixel() {
     assert_eq!((on.0, off.0, auto.0), (true, false, false));
     assert!(on.1 >= 4, "{} tiles", on.1);
     assert!(on.2 == off.2 && off.2 == auto.2, "the outputs differ");
+    // Contract-v1 pairs run without it, whatever is asked.
+    let out = tmp.path().join("out-v1.exr");
+    let res = bin()
+        .args([
+            "run",
+            input.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+            "--models",
+            tiny_models().to_str().unwrap(),
+        ])
+        .args(["--threads", "1", "--io-binding", "on"])
+        .output()
+        .unwrap();
+    assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap();
+    assert_eq!((report["contract"].as_u64(), report["io_binding"].as_bool()), (Some(1), Some(false)));
     let res = bin().args(["run", "x.exr", "-o", "y.exr", "--io-binding", "gpu"]).output().unwrap();
     let stderr = String::from_utf8_lossy(&res.stderr);
     assert!(!res.status.success() && stderr.contains("--io-binding") && stderr.contains("on"), "{stderr}");

@@ -59,7 +59,8 @@ impl fmt::Display for Device {
 /// once per region shape (on a GPU page-locked host memory, which crosses PCIe by DMA
 /// without the staging copy pageable memory needs), instead of tensors over the engine's
 /// own buffers created for each run.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(clap::ValueEnum, Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
 pub enum IoBinding {
     /// On a GPU; off on the CPU, where ONNX Runtime reads the engine's buffers directly.
     #[default]
@@ -69,14 +70,6 @@ pub enum IoBinding {
 }
 
 impl IoBinding {
-    pub fn name(self) -> &'static str {
-        match self {
-            IoBinding::Auto => "auto",
-            IoBinding::On => "on",
-            IoBinding::Off => "off",
-        }
-    }
-
     /// Whether the binding is used on `device` (resolved: `cpu` or `cuda:N`).
     pub fn enabled(self, device: Device) -> bool {
         match self {
