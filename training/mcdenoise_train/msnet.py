@@ -240,6 +240,65 @@ def from_arguments(a, in_features: int) -> MSNet:
                  kernel_size=a.kernel_size, levels=a.levels)
 
 
+@torch.no_grad()
+def transplant(source: MSNet, target: MSNet) -> list[str]:
+    """Copies `source`'s weights into `target`, a network of the same inputs, levels,
+    kernel size and encoder but possibly fewer extractor blocks or narrower decoder levels:
+    the start of a fine-tuning into a cheaper shape. Extractor blocks beyond the target's
+    are dropped (a residual block left out is the identity plus what fine-tuning must make
+    up); a narrowed decoder level keeps the channels that carry the most weight, an output
+    channel's importance being the norm of its weights times the norm of what reads it.
+    Returns what was not copied unchanged, one line each."""
+    s, t = source.config, target.config
+    for key in ("in_features", "levels", "kernel_size", "enc", "ext_width"):
+        if s[key] != t[key]:
+            raise ValueError(f"transplant needs the same {key}: source {s[key]}, target {t[key]}")
+    if t["ext_blocks"] > s["ext_blocks"] or any(b > a for a, b in zip(s["dec"], t["dec"])):
+        raise ValueError(f"transplant only removes: source ext_blocks {s['ext_blocks']} dec {s['dec']}, "
+                         f"target ext_blocks {t['ext_blocks']} dec {t['dec']}")
+    notes = []
+    for name in ("color_extractor", "feature_extractor"):
+        src, dst = getattr(source, name), getattr(target, name)
+        dst.load_state_dict({k: v for k, v in src.state_dict().items() if int(k.split(".")[0]) < len(dst)})
+        if len(src) > len(dst):
+            notes.append(f"{name}: residual blocks {len(src) - 1} -> {len(dst) - 1}")
+    target.encoder.load_state_dict(source.encoder.state_dict())
+    levels = source.levels
+    # `keep[l]`: the channels of decoder level l's output kept (all of the coarsest level's).
+    keep: list[torch.Tensor | None] = [None] * levels
+
+    def norms(w: torch.Tensor, dim: int) -> torch.Tensor:
+        return w.pow(2).sum(dim=[d for d in range(w.dim()) if d != dim]).sqrt()
+
+    for l in reversed(range(levels - 1)):
+        sp, tp = source.decoder[l], target.decoder[l]
+        a, b = sp[0].weight, sp[2].weight  # conv_a: [dec, below + skip, 3, 3], conv_b: [dec, dec, 3, 3]
+        # input columns of conv_a: the level below's output (its kept channels), then the skip
+        n_below = source.decoder[l + 1][2].out_channels if l + 1 < levels - 1 else source.encoder[-1][2].out_channels
+        cols = torch.arange(a.shape[1])
+        if keep[l + 1] is not None:
+            cols = torch.cat([keep[l + 1], torch.arange(n_below, a.shape[1])])
+        width = tp[0].out_channels
+        mid = torch.argsort(norms(a, 0) * norms(b, 1), descending=True)[:width].sort().values
+        readers = norms(source.kernel_heads[l].weight, 1).pow(2) + norms(source.blend_heads[l].weight, 1).pow(2)
+        if l > 0:
+            readers = readers + norms(source.decoder[l - 1][0].weight[:, : b.shape[0]], 1).pow(2)
+        out = torch.argsort(norms(b, 0) * readers.sqrt(), descending=True)[:width].sort().values
+        tp[0].weight.copy_(a[mid][:, cols])
+        tp[0].bias.copy_(sp[0].bias[mid])
+        tp[2].weight.copy_(b[out][:, mid])
+        tp[2].bias.copy_(sp[2].bias[out])
+        for heads in ("kernel_heads", "blend_heads"):
+            sh, th = getattr(source, heads)[l], getattr(target, heads)[l]
+            th.weight.copy_(sh.weight[:, out])
+            th.bias.copy_(sh.bias)
+        if width < a.shape[0]:
+            keep[l] = out
+            notes.append(f"decoder level {l}: width {a.shape[0]} -> {width}")
+    target.kernel_heads[-1].load_state_dict(source.kernel_heads[-1].state_dict())
+    return notes
+
+
 def pad_to_multiple(x: torch.Tensor, m: int) -> torch.Tensor:
     """Replicates the last row and column of `x [N,C,H,W]` up to multiples of `m` (as the
     engine does before inference)."""
@@ -250,4 +309,4 @@ def pad_to_multiple(x: torch.Tensor, m: int) -> torch.Tensor:
     return F.pad(x, (0, pw, 0, ph), mode="replicate")
 
 
-__all__ = ["DEFAULT", "MSNet", "add_shape_arguments", "from_arguments", "pad_to_multiple"]
+__all__ = ["DEFAULT", "MSNet", "add_shape_arguments", "from_arguments", "pad_to_multiple", "transplant"]

@@ -52,7 +52,7 @@ from .data import manifest_frames
 from .exr import read_exr
 from .files import append_jsonl, atomic_path, open_append
 from .model import DenoiserNet, paper_config
-from .msnet import MSNet, add_shape_arguments, from_arguments, pad_to_multiple
+from .msnet import MSNet, add_shape_arguments, from_arguments, pad_to_multiple, transplant
 from .preprocess import ALBEDO, DIFFUSE, SPECULAR, VAR, as_beauty, preprocess, raw_from_channels, targets
 from .recon import reconstruct as _recon_v1
 from .recon_ms import reconstruct
@@ -367,6 +367,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--init", default=None,
                    help="start from this msnet checkpoint's weights (its shape; a fresh optimizer and schedule): "
                         "fine-tuning, e.g. with other loss weights")
+    p.add_argument("--reshape", action="store_true",
+                   help="with --init: train the shape the shape options give (fewer extractor blocks, narrower "
+                        "decoder levels), started from the checkpoint's weights where they fit (msnet.transplant)")
     p.add_argument("--arch", choices=("msnet", "lin2020"), default="msnet")
     p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
     p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
@@ -391,6 +394,8 @@ def fitted_steps(step: int, rate: float, budget: float, elapsed: float) -> int:
 
 def main(argv=None) -> int:
     a = parse(argv)
+    if a.reshape and not a.init:
+        raise SystemExit("--reshape needs --init (the checkpoint whose weights start the new shape)")
     torch.set_num_threads(max(1, a.threads))
     torch.set_flush_denormal(True)
     dev = torch.device(a.device)
@@ -424,6 +429,13 @@ def main(argv=None) -> int:
             raise SystemExit("--beauty trains the production network (--arch msnet)")
         net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
         a.cov_dropout = 0.0  # the paper's network always has covariance
+    elif a.init and a.reshape:
+        from .checkpoint import load_msnet
+
+        net = from_arguments(a, len(FEATURES_FULL))
+        for note in transplant(load_msnet(a.init)[0], net):
+            print(f"--reshape: {note}", file=sys.stderr)
+        net.train()
     elif a.init:
         from .checkpoint import load_msnet
 

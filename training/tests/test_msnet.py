@@ -10,7 +10,7 @@ import torch.nn.functional as F
 
 from mcdenoise_train.contract import FEATURES_FULL, NOCOV_INDICES
 from mcdenoise_train.export_ms import export_onnx, nocov_from_full, read_metadata_v2, verify_onnx
-from mcdenoise_train.msnet import MSNet, pad_to_multiple
+from mcdenoise_train.msnet import MSNet, pad_to_multiple, transplant
 from mcdenoise_train.recon_ms import filter_k, reconstruct, reconstruct_component, up2
 
 SMALL = dict(ext_width=4, ext_blocks=1, enc=(6, 6, 8, 8), dec=(6, 6, 8, 8), kernel_size=5, levels=5)
@@ -78,6 +78,46 @@ def test_full_blend_takes_the_coarse_level_low_frequencies():
     blends = [torch.full((1, 1, 16 >> l, 16 >> l), 30.0) for l in range(2)]
     assert torch.allclose(reconstruct_component(kernels, blends, color), color, atol=1e-5)
     assert torch.allclose(up2(F.avg_pool2d(color, 2)).mean(), color.mean(), atol=1e-6)
+
+
+def test_transplant_into_the_same_shape_copies_the_network():
+    torch.manual_seed(3)
+    src, dst = MSNet(28, **SMALL).eval(), MSNet(28, **SMALL).eval()
+    assert transplant(src, dst) == []
+    x = _inputs(1, 32, 32)
+    for a, b in zip(src(*x), dst(*x)):
+        assert torch.equal(a, b)
+
+
+@torch.no_grad()
+def test_transplant_keeps_the_channels_that_carry_the_network():
+    """A source whose residual blocks add nothing and whose decoder levels 0 and 1 use only
+    some of their channels (the others' weights zero, not in the first positions) is the
+    narrower network exactly: the transplant must find those channels."""
+    torch.manual_seed(4)
+    src = MSNet(28, **SMALL).eval()
+    for ext in (src.color_extractor, src.feature_extractor):
+        ext[1].conv2.weight.zero_(), ext[1].conv2.bias.zero_()
+    for l, used in ((0, [1, 4, 5]), (1, [0, 2, 3, 5])):
+        idle = [c for c in range(SMALL["dec"][l]) if c not in used]
+        for conv in (src.decoder[l][0], src.decoder[l][2]):
+            conv.weight[idle] = 0
+            conv.bias[idle] = 0
+    dst = MSNet(28, **{**SMALL, "ext_blocks": 0, "dec": (3, 4, 8, 8)}).eval()
+    notes = transplant(src, dst)
+    assert notes == ["color_extractor: residual blocks 1 -> 0", "feature_extractor: residual blocks 1 -> 0",
+                     "decoder level 1: width 6 -> 4", "decoder level 0: width 6 -> 3"]
+    x = _inputs(1, 32, 32, seed=5)
+    for a, b in zip(src(*x), dst(*x)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+def test_transplant_refuses_what_it_cannot_map():
+    src = MSNet(28, **SMALL)
+    with pytest.raises(ValueError, match="only removes"):
+        transplant(src, MSNet(28, **{**SMALL, "dec": (8, 6, 8, 8)}))
+    with pytest.raises(ValueError, match="same enc"):
+        transplant(src, MSNet(28, **{**SMALL, "enc": (8, 6, 8, 8)}))
 
 
 def test_pad_to_multiple_replicates_the_edge():

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from mcdenoise_train import train_ms
-from mcdenoise_train.checkpoint import load_state, save_state
+from mcdenoise_train.checkpoint import load_msnet, load_state, save_state
 from mcdenoise_train.export_ms import read_metadata_v2
 from mcdenoise_train.exr import read_exr, write_exr
 from mcdenoise_train.frames import synthetic_frame
@@ -188,6 +188,14 @@ def test_training_steps_resume_and_export(tmp_path):
     assert [json.loads(l)["step"] for l in open(tuned / "val.jsonl")] == [2]
     cfg = json.loads((tuned / "config.json").read_text())
     assert cfg["enc"] == "6,6,8,8" and cfg["ssim"] == 0.5
+    # --reshape trains the shape the options give from the checkpoint's weights where they fit.
+    slim = tmp_path / "slim"
+    assert train_ms.main(["--data", str(root), "--out", str(slim), "--steps", "2", *small, "--ext-blocks", "0",
+                          "--dec", "4,6,8,8", "--init", str(out / "best.pt"), "--reshape"]) == 0
+    net = load_msnet(slim / "best.pt")[0]
+    assert net.config["ext_blocks"] == 0 and net.config["dec"] == [4, 6, 8, 8]
+    with pytest.raises(SystemExit, match="--reshape needs --init"):
+        train_ms.main(["--data", str(root), "--out", str(slim), "--steps", "2", *small, "--reshape"])
 
 
 def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
