@@ -5,7 +5,7 @@ mod common;
 
 use common::*;
 use mcdenoise::engine::contract::COLOR_CHANNELS;
-use mcdenoise::engine::preprocess::{luminance, preprocess};
+use mcdenoise::engine::preprocess::{luminance, preprocess, preprocess_into, Inputs};
 use mcdenoise::engine::{
     synthetic_frame, Engine, EngineConfig, EngineError, FeatureSet, FrameStats, Options, Rect, Variant, EPS,
 };
@@ -111,6 +111,25 @@ fn a_region_preprocesses_like_the_same_pixels_of_the_whole_frame() {
                 }
             }
         }
+    }
+}
+
+#[test]
+fn buffers_reused_for_another_region_are_written_whole() {
+    // The engine hands the buffers of one region to the next: stale values, here NaN,
+    // must all be overwritten, for both feature sets.
+    let frame = synthetic_frame(21, 17, true);
+    let stats = FrameStats::of(&frame);
+    let rect = Rect { x: 3, y: 2, w: 15, h: 11 };
+    for set in FeatureSet::ALL {
+        let fresh = preprocess(&frame, &stats, set, rect);
+        // Longer and shorter than needed (10 and 24 or 28 channels of 165 pixels).
+        let stale = |len| vec![f32::NAN; len];
+        let mut reused = Inputs { rect, diffuse: stale(5000), specular: stale(1000), features: stale(3000) };
+        preprocess_into(&frame, &stats, set, rect, &mut reused);
+        assert_eq!(reused.diffuse, fresh.diffuse, "{set:?}");
+        assert_eq!(reused.specular, fresh.specular, "{set:?}");
+        assert_eq!(reused.features, fresh.features, "{set:?}");
     }
 }
 

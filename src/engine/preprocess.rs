@@ -100,18 +100,29 @@ fn scaled(x: f32, m: f32) -> f32 {
 /// If `set` is `Full` and the frame has no covariance (callers pick the variant from the
 /// frame), or if `rect` is not inside the frame.
 pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect) -> Inputs {
+    let mut inputs = Inputs { rect, diffuse: Vec::new(), specular: Vec::new(), features: Vec::new() };
+    preprocess_into(frame, stats, set, rect, &mut inputs);
+    inputs
+}
+
+/// [`preprocess`] into the buffers of `inputs`, which are resized and every value of which
+/// is written: the engine reuses one set of buffers for all the regions of a frame, which
+/// would otherwise each map and fault in some 100 MB of fresh memory (at 4K, 28 regions).
+pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect, inputs: &mut Inputs) {
     assert!(rect.x + rect.w <= frame.width && rect.y + rect.h <= frame.height, "region outside the frame");
     let n = rect.pixels();
-    let mut diffuse = vec![0f32; COLOR_CHANNELS * n];
-    let mut specular = vec![0f32; COLOR_CHANNELS * n];
-    let mut features = vec![0f32; set.feature_channels() * n];
+    inputs.rect = rect;
+    let Inputs { diffuse, specular, features, .. } = inputs;
+    diffuse.resize(COLOR_CHANNELS * n, 0.0);
+    specular.resize(COLOR_CHANNELS * n, 0.0);
+    features.resize(set.feature_channels() * n, 0.0);
 
     let albedo = frame.rgb(Buffer::Albedo);
     // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)². Negative colors and
     // albedos (a malformed frame) are taken as 0: a + ε is then never near zero.
     {
         let d = frame.f32_planes(Buffer::Diffuse);
-        let [base, var, gx, gy] = color_layout(&mut diffuse, n);
+        let [base, var, gx, gy] = color_layout(diffuse, n);
         for c in 0..3 {
             let (d, a) = (&d[c], albedo[c]);
             with_gradients(
@@ -137,7 +148,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
     // Specular color: ln(1 + s); variance scaled by 1 / (1 + s)² (delta method).
     {
         let s = frame.f32_planes(Buffer::Specular);
-        let [base, var, gx, gy] = color_layout(&mut specular, n);
+        let [base, var, gx, gy] = color_layout(specular, n);
         for c in 0..3 {
             let s = &s[c];
             with_gradients(
@@ -203,7 +214,6 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
             });
         }
     }
-    Inputs { rect, diffuse, specular, features }
 }
 
 fn inverse_square(m: f32) -> f32 {
