@@ -107,7 +107,7 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
 
 /// [`preprocess`] into the buffers of `inputs`, which are resized and every value of which
 /// is written: the engine reuses one set of buffers for all the regions of a frame, which
-/// would otherwise each map and fault in some 100 MB of fresh memory (at 4K, 28 regions).
+/// would otherwise each map and fault in some 150 MB of fresh memory (at 4K, 28 regions).
 pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect, inputs: &mut Inputs) {
     assert!(rect.x + rect.w <= frame.width && rect.y + rect.h <= frame.height, "region outside the frame");
     let n = rect.pixels();
