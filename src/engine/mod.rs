@@ -601,7 +601,7 @@ struct Placement {
 /// (docs/results/speed-work.md).
 #[derive(Default)]
 struct Scratch {
-    inputs: Option<preprocess::Inputs>,
+    inputs: preprocess::Inputs,
     colors: [Vec<f32>; 2],
 }
 
@@ -620,12 +620,7 @@ fn run_region(
     reconstruct: bool,
 ) -> Result<[Vec<f32>; 2], EngineError> {
     let t = Instant::now();
-    let mut inputs = scratch.inputs.take().unwrap_or_else(|| preprocess::Inputs {
-        rect: region,
-        diffuse: Vec::new(),
-        specular: Vec::new(),
-        features: Vec::new(),
-    });
+    let mut inputs = std::mem::take(&mut scratch.inputs);
     pool.install(|| preprocess::preprocess_into(frame, stats, model.features, region, &mut inputs));
     timings.preprocess += t.elapsed();
     let mut out = [vec![0f32; 3 * core.pixels()], vec![0f32; 3 * core.pixels()]];
@@ -652,7 +647,7 @@ fn run_region(
                 timings.inference += t.elapsed() - recon_time;
                 timings.reconstruction += recon_time;
             }
-            scratch.inputs = Some(inputs);
+            scratch.inputs = inputs;
         }
         model::Networks::MultiScale(net) => {
             let t = Instant::now();
@@ -708,7 +703,7 @@ fn run_region(
                     }
                 })
             };
-            scratch.inputs = Some(preprocess::Inputs { rect: region, diffuse, specular, features });
+            scratch.inputs = preprocess::Inputs { rect: region, diffuse, specular, features };
             ran?;
             timings.inference += t.elapsed() - recon_time;
             timings.reconstruction += recon_time;

@@ -42,7 +42,7 @@ pub fn luminance(r: f32, g: f32, b: f32) -> f32 {
 }
 
 /// A rectangle of the frame, in pixels.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Rect {
     pub x: usize,
     pub y: usize,
@@ -75,6 +75,7 @@ impl FrameStats {
 }
 
 /// Network inputs for one region, planar `[channels][h][w]`.
+#[derive(Default)]
 pub struct Inputs {
     pub rect: Rect,
     /// `color` input of the diffuse network (10 channels; the first 3 are `d'`).
@@ -100,7 +101,7 @@ fn scaled(x: f32, m: f32) -> f32 {
 /// If `set` is `Full` and the frame has no covariance (callers pick the variant from the
 /// frame), or if `rect` is not inside the frame.
 pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect) -> Inputs {
-    let mut inputs = Inputs { rect, diffuse: Vec::new(), specular: Vec::new(), features: Vec::new() };
+    let mut inputs = Inputs::default();
     preprocess_into(frame, stats, set, rect, &mut inputs);
     inputs
 }
