@@ -23,6 +23,9 @@ Recipe:
 - **Beauty** (`--beauty`): every patch as a frame with only a beauty, albedo and normal
   (`preprocess.as_beauty`: the sum of both components in the diffuse slot, no variances, no
   covariance, the depth dropped in half the patches); exported as the `beauty` variant.
+- **Distillation** (`--teacher CKPT --distill W`): the loss is (1 − W) × the loss above
+  against the reference plus W × the same loss against a trained network's output on the
+  same patch, for a cheaper shape learning from the shipped one (`--init … --reshape`).
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine), bf16 autocast on CUDA.
 - **Checkpoints** (`runs` directory, `checkpoint.py`): `best.pt` (network weights and
   config, selected on the validation frames by mean log RelMSE + mean log DSSIM),
@@ -292,6 +295,14 @@ def forward(net, b: dict[str, torch.Tensor], autocast: bool):
 
 
 @torch.no_grad()
+def distill_batch(teacher, b: dict[str, torch.Tensor], autocast: bool) -> dict[str, torch.Tensor]:
+    """The batch with the teacher's output on it as the targets (knowledge distillation): its
+    components in their preprocessed domains and its final color."""
+    t = forward(teacher, b, autocast)
+    return {**b, "diffuse_target": t.diffuse_pre, "specular_target": t.specular_pre, "reference": t.total}
+
+
+@torch.no_grad()
 def denoise_whole(net, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool = False) -> torch.Tensor:
     """Whole frames [N, 20, H, W] denoised (padded to the network's size multiple): [N, 3, H, W]."""
     h, w = raw.shape[-2:]
@@ -370,6 +381,11 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--reshape", action="store_true",
                    help="with --init: train the shape the shape options give (fewer extractor blocks, narrower "
                         "decoder levels), started from the checkpoint's weights where they fit (msnet.transplant)")
+    p.add_argument("--teacher", default=None,
+                   help="distil from this msnet checkpoint: the loss also compares the output with the teacher's "
+                        "on the same patch (weight --distill)")
+    p.add_argument("--distill", type=float, default=0.5,
+                   help="with --teacher: the teacher's share of the loss, the reference's is 1 - W")
     p.add_argument("--arch", choices=("msnet", "lin2020"), default="msnet")
     p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
     p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
@@ -396,6 +412,10 @@ def main(argv=None) -> int:
     a = parse(argv)
     if a.reshape and not a.init:
         raise SystemExit("--reshape needs --init (the checkpoint whose weights start the new shape)")
+    if a.teacher and a.arch != "msnet":
+        raise SystemExit("--teacher distils into the production network (--arch msnet)")
+    if not 0.0 <= a.distill <= 1.0:
+        raise SystemExit(f"--distill {a.distill}: the teacher's share of the loss is between 0 and 1")
     torch.set_num_threads(max(1, a.threads))
     torch.set_flush_denormal(True)
     dev = torch.device(a.device)
@@ -449,6 +469,14 @@ def main(argv=None) -> int:
         net = from_arguments(a, len(FEATURES_FULL))
     net = net.to(dev).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=a.lr)
+    teacher = None
+    if a.teacher:
+        from .checkpoint import load_msnet
+
+        teacher = load_msnet(a.teacher)[0].to(dev).to(memory_format=torch.channels_last).eval()
+        teacher.requires_grad_(False)
+        print(f"distilling from {a.teacher} ({teacher.flops_per_pixel() / 1e6:.3f} MFLOP/px), weight {a.distill}",
+              file=sys.stderr, flush=True)
 
     def schedule(total: int, done: int = 0):
         """One-cycle schedule over `total` steps, advanced past the `done` steps taken (the
@@ -507,6 +535,11 @@ def main(argv=None) -> int:
         b = {k: v.contiguous(memory_format=torch.channels_last) for k, v in b.items()}
         rec = forward(net, b, autocast)
         loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual, perceptual_weight=a.perceptual)
+        if teacher is not None:
+            taught, _ = losses.ms_loss(rec, distill_batch(teacher, b, autocast), l1_weight=a.l1, ssim_weight=a.ssim,
+                                       perceptual=perceptual, perceptual_weight=a.perceptual)
+            parts["distill"] = float(taught.detach())
+            loss = (1.0 - a.distill) * loss + a.distill * taught
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)

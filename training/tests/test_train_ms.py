@@ -196,6 +196,32 @@ def test_training_steps_resume_and_export(tmp_path):
     assert net.config["ext_blocks"] == 0 and net.config["dec"] == [4, 6, 8, 8]
     with pytest.raises(SystemExit, match="--reshape needs --init"):
         train_ms.main(["--data", str(root), "--out", str(slim), "--steps", "2", *small, "--reshape"])
+    # --teacher adds the distillation term, logged beside the others.
+    taught = tmp_path / "taught"
+    assert train_ms.main(["--data", str(root), "--out", str(taught), "--steps", "20", *small, "--val-every", "20",
+                          "--ext-blocks", "0", "--dec", "4,6,8,8", "--init", str(out / "best.pt"), "--reshape",
+                          "--teacher", str(out / "best.pt"), "--distill", "0.7"]) == 0
+    rows = [json.loads(l) for l in open(taught / "log.jsonl")]
+    assert rows and all(np.isfinite(r["distill"]) and r["distill"] > 0 for r in rows)
+    with pytest.raises(SystemExit, match="between 0 and 1"):
+        train_ms.main(["--data", str(root), "--out", str(taught), "--steps", "2", *small,
+                       "--teacher", str(out / "best.pt"), "--distill", "1.5"])
+
+
+def test_distillation_targets_are_the_teachers_output():
+    args = _args(ext_width=4, ext_blocks=1, enc="6,6,8,8", dec="6,6,8,8")
+    torch.manual_seed(0)
+    student, other = train_ms.from_arguments(args, 28), train_ms.from_arguments(args, 28)
+    raw, ref = _raw_batch(n=2, size=33)
+    maxima = torch.ones(2, 2)
+    b = train_ms.batch_inputs(raw, ref, maxima, 0.0, torch.Generator().manual_seed(0), crop=32)
+    rec = train_ms.forward(student, b, autocast=False)
+    same = train_ms.distill_batch(student, b, autocast=False)
+    assert torch.equal(same["diffuse"], b["diffuse"]) and not torch.equal(same["reference"], b["reference"])
+    loss, parts = train_ms.losses.ms_loss(rec, same, ssim_weight=0.2)
+    assert float(loss.detach()) < 1e-5, parts
+    loss, _ = train_ms.losses.ms_loss(rec, train_ms.distill_batch(other, b, autocast=False), ssim_weight=0.2)
+    assert float(loss.detach()) > 1e-3
 
 
 def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
