@@ -123,3 +123,19 @@ def test_install_joins_the_pieces_of_two_carries(tmp_path):
     _run(env, "install")
     assert (home / "site" / "probe_pkg" / "__init__.py").read_text().startswith("VALUE = 7")
     assert not list((home / "stash").glob("site.tar.xz.part-*"))
+
+
+@pytest.mark.skipif(not SCRIPT.exists(), reason="scripts/gpu-pipeline missing")
+def test_a_piece_fits_one_carry_beside_the_checkout(tmp_path):
+    # A device command carries the checkout (what git does not ignore, counted as a tar) and
+    # the carried paths, at most 64 MiB together: the default piece fits beside it.
+    root = SCRIPT.parents[1]
+    files = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=root,
+                           capture_output=True, check=True).stdout
+    tree = len(subprocess.run(["tar", "--null", "-cf", "-", "-T", "-"], cwd=root, input=files,
+                              capture_output=True, check=True).stdout)
+    room = int(_run(dict(os.environ), "carry-room").stdout)
+    assert room >= 5 and tree + room * 1_000_000 <= 64 * 2**20 - 1_000_000
+    assert _run({**os.environ, "PIECE_MB": "7"}, "carry-room").stdout.strip() == "7"
+    res = subprocess.run([str(SCRIPT), "carry-room"], env={**os.environ, "PIECE_MB": "3"}, capture_output=True, text=True)
+    assert res.returncode != 0 and "too little for a piece" in res.stderr
