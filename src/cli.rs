@@ -9,7 +9,7 @@ use clap::Args;
 use ndarray::{Array0, Array3};
 use serde_json::json;
 
-use crate::config::{AlbedoArgs, FireflyArgs};
+use crate::config::{AlbedoArgs, FireflyArgs, VarianceArgs};
 use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
 use crate::frame::{Buffer, ChannelMaps, Frame, Limits, Plane, PlaneRef};
 use crate::jobs::Layer;
@@ -105,6 +105,8 @@ pub struct RunArgs {
     pub fireflies: FireflyArgs,
     #[command(flatten)]
     pub albedo: AlbedoArgs,
+    #[command(flatten)]
+    pub variances: VarianceArgs,
     /// How the renderer's AOV names are read: `auto` (canonical names, Blender Cycles'
     /// passes, then every shipped preset), a preset's name (`arnold`, `renderman`,
     /// `karma`, `vray`, `redshift`), or the frame's own map as `key=AOVs` pairs separated
@@ -171,6 +173,9 @@ pub struct PreprocessArgs {
     /// And the albedo prefiltered alike.
     #[command(flatten)]
     pub albedo: AlbedoArgs,
+    /// And the variances checked alike.
+    #[command(flatten)]
+    pub variances: VarianceArgs,
     #[command(flatten)]
     pub frame: FrameArgs,
 }
@@ -223,6 +228,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         reference: args.reference.as_deref(),
         variant: args.variant.resolve(),
         fireflies,
+        variance_check: args.variances.variance_check,
         layers: &layers,
         limits: args.frame.limits(),
         channel_maps,
@@ -274,6 +280,7 @@ pub fn run(args: RunArgs) -> Result<()> {
             "by_component": out.fireflies,
         },
         "albedo_prefilter": config.albedo_prefilter,
+        "variance_check": args.variances.variance_check,
         "timings_ms": {
             "load_models": load_ms,
             "decode": timings.decode,
@@ -310,6 +317,9 @@ fn pipeline_error(e: pipeline::Failure, input: &Path, reference: Option<&Path>) 
 pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     let limits = args.frame.limits();
     let mut frame = read(&args.input, &limits, false)?;
+    if let Some(scale) = engine::variance::check(&mut frame, args.variances.variance_check) {
+        eprintln!("{}: {}", args.input.display(), scale.warning());
+    }
     let reference = args.reference.as_deref().map(|p| read(p, &limits, true)).transpose()?;
     if let Some(r) = &reference {
         check_same_size(&frame, r)?;

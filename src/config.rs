@@ -13,6 +13,7 @@ use std::time::Duration;
 use anyhow::{bail, Context};
 use clap::{Args, Command};
 
+use crate::engine::variance::VarianceCheck;
 use crate::engine::{AlbedoPrefilter, Fireflies, FireflyMode};
 use crate::frame::presets::{ChannelMap, ChannelMapSpec};
 use crate::frame::{ChannelMaps, Limits};
@@ -44,6 +45,22 @@ pub struct AlbedoArgs {
     /// file gives it.
     #[arg(long, env = "MCDENOISE_ALBEDO_PREFILTER", default_value = "on", value_parser = parse_albedo_prefilter)]
     pub albedo_prefilter: AlbedoPrefilter,
+}
+
+fn parse_variance_check(s: &str) -> Result<VarianceCheck, String> {
+    s.parse()
+}
+
+/// The variances' scale checked against the image's noise (src/engine/variance.rs), shared
+/// by `run`, `preprocess` and `serve`.
+#[derive(Args, Debug, Clone, Copy)]
+pub struct VarianceArgs {
+    /// The variances' scale: `auto` (the default) scales every variance buffer down when
+    /// the variances are far larger than the noise the image shows (a renderer that writes
+    /// the samples' variance instead of the variance of the pixel's mean) and says so in
+    /// the result's warnings; `off` uses them as the file gives them.
+    #[arg(long, env = "MCDENOISE_VARIANCE_CHECK", default_value = "auto", value_parser = parse_variance_check)]
+    pub variance_check: VarianceCheck,
 }
 
 /// Firefly handling (docs/fireflies.md), shared by `run`, `preprocess` and `serve` (where
@@ -198,6 +215,8 @@ pub struct ServeArgs {
     pub fireflies: FireflyArgs,
     #[command(flatten)]
     pub albedo: AlbedoArgs,
+    #[command(flatten)]
+    pub variances: VarianceArgs,
 
     // --- Queue and limits --------------------------------------------------------------
     /// Largest number of queued jobs (running ones excluded); beyond it submissions get
@@ -449,6 +468,7 @@ impl ServeArgs {
             "region_pixels": self.region_pixels,
             "fireflies": self.fireflies.settings(),
             "albedo_prefilter": self.albedo.albedo_prefilter,
+            "variance_check": self.variances.variance_check,
             "queue_capacity": self.queue_capacity,
             "job_deadline": humantime::format_duration(self.job_deadline).to_string(),
             "result_ttl": humantime::format_duration(self.result_ttl).to_string(),

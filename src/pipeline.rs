@@ -7,6 +7,7 @@
 use std::path::Path;
 use std::time::Instant;
 
+use crate::engine::variance::{self, VarianceCheck};
 use crate::engine::{Denoised, Denoiser, EngineError, Fireflies, FireflyReport, Options, Progress, Variant};
 use crate::frame::{Carried, Carry, ChannelMaps, Frame, FrameError, Limits, Sanitized};
 use crate::jobs::{Layer, Timings};
@@ -22,6 +23,9 @@ pub struct Request<'a> {
     pub variant: Option<Variant>,
     /// Firefly handling before the networks (docs/fireflies.md).
     pub fireflies: Fireflies,
+    /// Whether variances far larger than the image's noise are scaled down
+    /// ([`crate::engine::variance`]).
+    pub variance_check: VarianceCheck,
     /// Extra layers of the result besides `R,G,B` and the beauty's alpha.
     pub layers: &'a [Layer],
     pub limits: Limits,
@@ -47,7 +51,7 @@ pub struct Output {
     pub sanitized: Sanitized,
     /// Variance buffers the frame lacked, taken as 0.
     pub missing_variances: Vec<String>,
-    /// What the frame's passes could only approximate.
+    /// What the frame's passes could only approximate, and the variance check's scaling.
     pub warnings: Vec<String>,
     /// Samples the firefly handling clamped.
     pub fireflies: FireflyReport,
@@ -195,6 +199,14 @@ pub fn run(
     if !frame.missing_variances.is_empty() {
         tracing::info!(buffers = ?frame.missing_variances, "variance buffers missing; taken as 0");
     }
+    let rescaled = variance::check(&mut frame, request.variance_check);
+    if let Some(scale) = &rescaled {
+        tracing::warn!(
+            measure = scale.measured,
+            factor = scale.factor,
+            "variances far larger than the image's noise; scaled down"
+        );
+    }
 
     let span =
         tracing::info_span!("denoise", width = frame.width, height = frame.height, tiles = tracing::field::Empty);
@@ -223,11 +235,11 @@ pub fn run(
     let t = Instant::now();
     let sanitized = std::mem::take(&mut frame.sanitized);
     let missing_variances = std::mem::take(&mut frame.missing_variances);
-    let warnings = if frame.beauty_only && out.variant != Variant::Beauty {
-        vec![crate::frame::renderers::no_split_warning(out.variant.name())]
-    } else {
-        Vec::new()
-    };
+    let mut warnings = Vec::new();
+    if frame.beauty_only && out.variant != Variant::Beauty {
+        warnings.push(crate::frame::renderers::no_split_warning(out.variant.name()));
+    }
+    warnings.extend(rescaled.map(|s| s.warning()));
     for (name, value) in attributes(&*denoiser, out.variant) {
         carried.header.set_text(name, &value);
     }

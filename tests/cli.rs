@@ -401,3 +401,54 @@ fn run_reads_renderer_names_through_the_channel_map_given() {
         assert!(err.contains(says), "{map}: {err}");
     }
 }
+
+#[test]
+fn run_scales_back_variances_of_the_samples_and_says_so() {
+    use exr::prelude::*;
+    // The cornell fixture with every variance 64 times too large: the samples' variance at
+    // 64 spp where the variance of the pixel's mean belongs.
+    let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/frames/cornell-spp8.exr");
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_file(fixture)
+        .unwrap();
+    let size = image.layer_data.size;
+    let planes: Vec<(String, Vec<f32>)> = image
+        .layer_data
+        .channel_data
+        .list
+        .iter()
+        .map(|c| {
+            let name = c.name.to_string();
+            let k = if name.contains("Variance") { 64.0 } else { 1.0 };
+            (name, c.sample_data.values_as_f32().map(|v| v * k).collect())
+        })
+        .collect();
+    assert!(planes.iter().filter(|(n, _)| n.contains("Variance")).count() >= 6);
+    let tmp = tempfile::tempdir().unwrap();
+    let input = tmp.path().join("in.exr");
+    std::fs::write(&input, exr_single(size.0, size.1, &planes, common::Sample::F32)).unwrap();
+    let models = concat!(env!("CARGO_MANIFEST_DIR"), "/models");
+    let run = |check: &str| -> serde_json::Value {
+        let out = tmp.path().join(format!("out-{check}.exr"));
+        let res = bin()
+            .args(["run", input.to_str().unwrap(), "-o", out.to_str().unwrap(), "--models", models])
+            .args(["--threads", "1", "--variance-check", check])
+            .output()
+            .unwrap();
+        assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+        serde_json::from_slice(&res.stdout).unwrap()
+    };
+    let (auto, off) = (run("auto"), run("off"));
+    assert_eq!((auto["variance_check"].as_str(), off["variance_check"].as_str()), (Some("auto"), Some("off")));
+    let warnings = auto["warnings"].as_array().unwrap();
+    assert!(warnings.iter().any(|w| w.as_str().unwrap().contains("variance of the pixel's mean")), "{warnings:?}");
+    assert!(off["warnings"].as_array().unwrap().is_empty(), "{off}");
+    let res = bin().args(["run", "x.exr", "-o", "y.exr", "--variance-check", "maybe"]).output().unwrap();
+    let stderr = String::from_utf8_lossy(&res.stderr);
+    assert!(!res.status.success() && stderr.contains("--variance-check") && stderr.contains("auto"), "{stderr}");
+}

@@ -21,6 +21,7 @@ pub mod multiscale;
 pub mod preprocess;
 pub mod reconstruct;
 pub mod runtime;
+pub mod variance;
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};

@@ -131,6 +131,8 @@ pub struct Settings {
     pub engine: EngineConfig,
     /// Firefly handling of jobs that do not choose their own.
     pub fireflies: Fireflies,
+    /// Whether the variances' scale is checked (`--variance-check`).
+    pub variance_check: crate::engine::variance::VarianceCheck,
     /// Free bytes the data directory must keep (see [`health`]).
     pub min_free_bytes: u64,
     /// How renderers' AOV names are read (the configured channel maps, then the shipped
@@ -163,6 +165,7 @@ impl Settings {
             workers: args.workers(),
             engine,
             fireflies: args.fireflies.settings(),
+            variance_check: args.variances.variance_check,
             min_free_bytes: args.min_free_bytes,
             channel_maps: args.channel_maps(),
         }

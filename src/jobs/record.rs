@@ -329,7 +329,8 @@ pub struct JobRecord {
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub missing_variances: Vec<String>,
     /// What the frame's renderer passes could only approximate (e.g. a Cycles frame without
-    /// the Diffuse passes), set once the job has run.
+    /// the Diffuse passes, or variances far larger than the image's noise, scaled down), set
+    /// once the job has run.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
     pub error: Option<JobError>,

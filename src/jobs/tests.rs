@@ -132,6 +132,7 @@ fn settings(capacity: usize) -> Settings {
         workers: 1,
         engine,
         fireflies: Default::default(),
+        variance_check: Default::default(),
         min_free_bytes: 0,
         channel_maps: Default::default(),
     }

@@ -103,6 +103,7 @@ fn run(link: &WorkerLink, denoiser: &mut dyn Denoiser, claim: &Claim) -> Outcome
         reference: claim.reference.as_deref(),
         variant: claim.variant,
         fireflies: claim.fireflies,
+        variance_check: link.settings().variance_check,
         layers: &claim.layers,
         limits: link.settings().limits,
         channel_maps,
