@@ -55,11 +55,11 @@ fn parse_variance_check(s: &str) -> Result<VarianceCheck, String> {
 /// by `run`, `preprocess` and `serve`.
 #[derive(Args, Debug, Clone, Copy)]
 pub struct VarianceArgs {
-    /// The variances' scale: `auto` (the default) scales every variance buffer down when
-    /// the variances are far larger than the noise the image shows (a renderer that writes
-    /// the samples' variance instead of the variance of the pixel's mean) and says so in
-    /// the result's warnings; `off` uses them as the file gives them.
-    #[arg(long, env = "MCDENOISE_VARIANCE_CHECK", default_value = "auto", value_parser = parse_variance_check)]
+    /// The variances' scale, when they are far larger than the noise the image shows (a
+    /// renderer that writes the samples' variance instead of the variance of the pixel's
+    /// mean): `warn` (the default) says so in the result's warnings, `auto` also scales every
+    /// variance buffer down to match, `off` does not measure.
+    #[arg(long, env = "MCDENOISE_VARIANCE_CHECK", default_value = "warn", value_parser = parse_variance_check)]
     pub variance_check: VarianceCheck,
 }
 

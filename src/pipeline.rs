@@ -51,7 +51,7 @@ pub struct Output {
     pub sanitized: Sanitized,
     /// Variance buffers the frame lacked, taken as 0.
     pub missing_variances: Vec<String>,
-    /// What the frame's passes could only approximate, and the variance check's scaling.
+    /// What the frame's passes could only approximate, and what the variance check found.
     pub warnings: Vec<String>,
     /// Samples the firefly handling clamped.
     pub fireflies: FireflyReport,
@@ -204,7 +204,8 @@ pub fn run(
         tracing::warn!(
             measure = scale.measured,
             factor = scale.factor,
-            "variances far larger than the image's noise; scaled down"
+            applied = scale.applied,
+            "variances far larger than the image's noise"
         );
     }
 

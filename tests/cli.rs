@@ -403,7 +403,7 @@ fn run_reads_renderer_names_through_the_channel_map_given() {
 }
 
 #[test]
-fn run_scales_back_variances_of_the_samples_and_says_so() {
+fn run_reports_variances_of_the_samples_and_with_auto_scales_them_back() {
     use exr::prelude::*;
     // The cornell fixture with every variance 64 times too large: the samples' variance at
     // 64 spp where the variance of the pixel's mean belongs.
@@ -443,10 +443,16 @@ fn run_scales_back_variances_of_the_samples_and_says_so() {
         assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
         serde_json::from_slice(&res.stdout).unwrap()
     };
-    let (auto, off) = (run("auto"), run("off"));
+    let (auto, warn, off) = (run("auto"), run("warn"), run("off"));
     assert_eq!((auto["variance_check"].as_str(), off["variance_check"].as_str()), (Some("auto"), Some("off")));
-    let warnings = auto["warnings"].as_array().unwrap();
-    assert!(warnings.iter().any(|w| w.as_str().unwrap().contains("variance of the pixel's mean")), "{warnings:?}");
+    let said = |report: &serde_json::Value, what: &str| {
+        report["warnings"].as_array().unwrap().iter().any(|w| {
+            let w = w.as_str().unwrap();
+            w.contains("variance of the pixel's mean") && w.contains(what)
+        })
+    };
+    assert!(said(&auto, "was scaled by"), "{auto}");
+    assert!(said(&warn, "--variance-check auto scales them"), "{warn}");
     assert!(off["warnings"].as_array().unwrap().is_empty(), "{off}");
     let res = bin().args(["run", "x.exr", "-o", "y.exr", "--variance-check", "maybe"]).output().unwrap();
     let stderr = String::from_utf8_lossy(&res.stderr);

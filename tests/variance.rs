@@ -1,7 +1,7 @@
 //! The variance scale check (src/engine/variance.rs) on the committed fixture frames, whose
-//! variances are those of each pixel's mean: it leaves them alone, and it finds and undoes
-//! variances of the samples (64 times too large at 64 spp), which the networks would
-//! otherwise trust far too much.
+//! variances are those of each pixel's mean: it leaves them alone, and it finds variances
+//! of the samples (64 times too large at 64 spp), which the networks would otherwise trust
+//! far too much: `warn` reports them, `auto` undoes them.
 
 use std::path::PathBuf;
 
@@ -66,6 +66,7 @@ fn variances_of_the_mean_are_left_as_they_are() {
         assert!(measured > 3.0 * THRESHOLD, "{name}: measure {measured} near the threshold");
         let mut checked = frame.clone();
         assert_eq!(variance::check(&mut checked, VarianceCheck::Auto), None, "{name}");
+        assert_eq!(variance::check(&mut checked, VarianceCheck::Warn), None, "{name}");
         assert_eq!(planes(&checked, Buffer::DiffuseVariance), planes(&frame, Buffer::DiffuseVariance));
     }
 }
@@ -80,8 +81,13 @@ fn variances_of_the_samples_are_scaled_back() {
         let wrong = scaled(&frame, 64.0);
         let mut off = wrong.clone();
         assert_eq!(variance::check(&mut off, VarianceCheck::Off), None);
+        let mut warned = wrong.clone();
+        let warning = variance::check(&mut warned, VarianceCheck::Warn).expect("warned");
+        assert!(!warning.applied && warning.warning().contains("--variance-check auto"), "{}", warning.warning());
+        assert_eq!(planes(&warned, Buffer::DiffuseVariance), planes(&wrong, Buffer::DiffuseVariance));
         let mut fixed = wrong.clone();
         let scale = variance::check(&mut fixed, VarianceCheck::Auto).expect("64x variances are found");
+        assert!(scale.applied && (scale.factor - warning.factor).abs() < 1e-9);
         println!("{name}: measure {:.4}, scaled by {:.4} (1/64 = {:.4})", scale.measured, scale.factor, 1.0 / 64.0);
         assert!(scale.measured < THRESHOLD);
         assert!((scale.factor * 64.0 - 1.0).abs() < 0.6, "{name}: factor {} for variances 64x too large", scale.factor);

@@ -22,9 +22,11 @@
 //! to 128 spp, none of the test sets) the median lies between 0.31 and 42, typically
 //! 0.6–0.7: the pixel filter spreads a sample over neighbouring pixels, whose noise is then
 //! correlated, which lowers `d²`. Variances of the samples at `n` spp give about `0.65 / n`.
-//! Below [`THRESHOLD`], six times under the lowest median measured, every variance buffer
-//! is multiplied by `median / TYPICAL`, which brings the measure back to its typical value,
-//! and the result says so.
+//! Below [`THRESHOLD`], six times under the lowest median measured, the result warns
+//! ([`VarianceCheck::Warn`], the default), and with [`VarianceCheck::Auto`] every variance
+//! buffer is multiplied by `median / TYPICAL`, which brings the measure back to its typical
+//! value. Warning only is the default because a noiseless image with variances (a frame
+//! already filtered by the renderer, or a synthetic one) measures near 0 as well.
 
 use rayon::prelude::*;
 
@@ -44,10 +46,13 @@ pub const MIN_SAMPLES: usize = 1_000;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum VarianceCheck {
-    /// Variances used as the file gives them.
+    /// Variances used as the file gives them, not measured.
     Off,
-    /// Variances far larger than the image's noise are scaled down (the default).
+    /// Variances far larger than the image's noise are reported in the result's warnings
+    /// and used as they are (the default).
     #[default]
+    Warn,
+    /// Variances far larger than the image's noise are scaled down, and the warning says so.
     Auto,
 }
 
@@ -57,8 +62,9 @@ impl std::str::FromStr for VarianceCheck {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "auto" => Ok(VarianceCheck::Auto),
+            "warn" => Ok(VarianceCheck::Warn),
             "off" => Ok(VarianceCheck::Off),
-            other => Err(format!("unknown variance check `{other}`: expected `auto` or `off`")),
+            other => Err(format!("unknown variance check `{other}`: expected `warn`, `auto` or `off`")),
         }
     }
 }
@@ -67,6 +73,7 @@ impl std::fmt::Display for VarianceCheck {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(match self {
             VarianceCheck::Off => "off",
+            VarianceCheck::Warn => "warn",
             VarianceCheck::Auto => "auto",
         })
     }
@@ -124,26 +131,32 @@ fn component_ratios(frame: &Frame, color: Buffer, variance: Buffer) -> Vec<f32> 
 pub struct VarianceScale {
     /// The measure before ([`measure`]).
     pub measured: f32,
-    /// The factor every variance buffer was multiplied by.
+    /// The factor that brings the measure to [`TYPICAL`].
     pub factor: f32,
+    /// Whether every variance buffer was multiplied by it ([`VarianceCheck::Auto`]).
+    pub applied: bool,
 }
 
 impl VarianceScale {
     /// The result's warning.
     pub fn warning(&self) -> String {
+        let done = if self.applied {
+            format!("every variance buffer was scaled by {:.3e} (--variance-check warn keeps them)", self.factor)
+        } else {
+            format!("they were used as they are (--variance-check auto scales them by {:.3e})", self.factor)
+        };
         format!(
             "the frame's variances are about {:.0}x the noise its image shows (measure {:.3}, typical {TYPICAL}): \
              a variance buffer holds the variance of the pixel's mean, the samples' variance divided by their \
-             count; every variance buffer was scaled by {:.3e} (--variance-check off keeps them as they are)",
+             count; {done}",
             1.0 / self.factor,
             self.measured,
-            self.factor
         )
     }
 }
 
-/// Checks the frame's variances ([module](self)) and scales them down where they are far too
-/// large. `None` when nothing was changed.
+/// Checks the frame's variances ([module](self)); with [`VarianceCheck::Auto`] scales them
+/// down where they are far too large. `None` when they are not (or `Off`).
 pub fn check(frame: &mut Frame, mode: VarianceCheck) -> Option<VarianceScale> {
     if mode == VarianceCheck::Off {
         return None;
@@ -153,11 +166,14 @@ pub fn check(frame: &mut Frame, mode: VarianceCheck) -> Option<VarianceScale> {
         return None;
     }
     let factor = measured.max(f32::MIN_POSITIVE) / TYPICAL;
+    if mode == VarianceCheck::Warn {
+        return Some(VarianceScale { measured, factor, applied: false });
+    }
     for buffer in Buffer::ALL.into_iter().filter_map(Buffer::variance) {
         if let Some(mut planes) = frame.take(buffer) {
             planes.par_iter_mut().for_each(|p| p.iter_mut().for_each(|x| *x *= factor));
             frame.set_planes(buffer, planes);
         }
     }
-    Some(VarianceScale { measured, factor })
+    Some(VarianceScale { measured, factor, applied: true })
 }

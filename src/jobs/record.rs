@@ -329,7 +329,7 @@ pub struct JobRecord {
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub missing_variances: Vec<String>,
     /// What the frame's renderer passes could only approximate (e.g. a Cycles frame without
-    /// the Diffuse passes, or variances far larger than the image's noise, scaled down), set
+    /// the Diffuse passes, or variances far larger than the image's noise), set
     /// once the job has run.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<String>,
