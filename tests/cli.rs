@@ -404,34 +404,22 @@ fn run_reads_renderer_names_through_the_channel_map_given() {
 
 #[test]
 fn run_reports_variances_of_the_samples_and_with_auto_scales_them_back() {
-    use exr::prelude::*;
     // The cornell fixture with every variance 64 times too large: the samples' variance at
     // 64 spp where the variance of the pixel's mean belongs.
-    let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/frames/cornell-spp8.exr");
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_file(fixture)
-        .unwrap();
-    let size = image.layer_data.size;
-    let planes: Vec<(String, Vec<f32>)> = image
-        .layer_data
-        .channel_data
-        .list
-        .iter()
-        .map(|c| {
-            let name = c.name.to_string();
+    let cornell = fixture("cornell-spp8.exr");
+    let size = (cornell.width, cornell.height);
+    let planes: Vec<(String, Vec<f32>)> = cornell
+        .planes
+        .into_iter()
+        .map(|(name, plane)| {
             let k = if name.contains("Variance") { 64.0 } else { 1.0 };
-            (name, c.sample_data.values_as_f32().map(|v| v * k).collect())
+            (name, plane.into_iter().map(|v| v * k).collect())
         })
         .collect();
     assert!(planes.iter().filter(|(n, _)| n.contains("Variance")).count() >= 6);
     let tmp = tempfile::tempdir().unwrap();
     let input = tmp.path().join("in.exr");
-    std::fs::write(&input, exr_single(size.0, size.1, &planes, common::Sample::F32)).unwrap();
+    std::fs::write(&input, exr_single(size.0, size.1, &planes, Sample::F32)).unwrap();
     let models = concat!(env!("CARGO_MANIFEST_DIR"), "/models");
     let run = |check: &str| -> serde_json::Value {
         let out = tmp.path().join(format!("out-{check}.exr"));

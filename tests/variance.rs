@@ -26,19 +26,10 @@ const SCENES: [(&str, &str); 3] = [
     ("shadow-spp8.exr", "shadow-ref.exr"),
 ];
 
-const VARIANCES: [Buffer; 6] = [
-    Buffer::DiffuseVariance,
-    Buffer::SpecularVariance,
-    Buffer::AlbedoVariance,
-    Buffer::NormalVariance,
-    Buffer::DepthVariance,
-    Buffer::CovarianceVariance,
-];
-
 /// The frame with every variance buffer multiplied by `k`.
 fn scaled(frame: &Frame, k: f32) -> Frame {
     let mut out = frame.clone();
-    for buffer in VARIANCES {
+    for buffer in Buffer::ALL.into_iter().filter_map(Buffer::variance) {
         if let Some(mut planes) = out.take(buffer) {
             planes.iter_mut().for_each(|p| p.iter_mut().for_each(|x| *x *= k));
             out.set_planes(buffer, planes);
