@@ -77,24 +77,36 @@ def parity(a, work: Path, precision: str) -> dict:
             "relative_to_max": worst / max(scale, 1e-12)}
 
 
-def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str, io_binding: str) -> list[dict]:
+def jobs_for(a, size: str) -> int:
+    """`--jobs` at 1080p and below; fewer on larger frames, in proportion to their pixels."""
+    w, h = map(int, size.split("x"))
+    return max(1, round(a.jobs * min(1.0, 1920 * 1080 / (w * h))))
+
+
+def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str, io_binding: str,
+                variant: str | None = None, clients_list: list[int] | None = None) -> list[dict]:
     rows = []
     d = Daemon(a, work, "serve", None, ("--device", a.device, "--tile-v2", "0", "--precision", precision,
                                         "--io-binding", io_binding))
+    url = d.base + "/v1/jobs" + (f"?variant={variant}" if variant else "")
     try:
         d.wait_ready()
         for size, path in frames.items():
+            if a.past_deadline():
+                a.skipped.append(f"daemon {variant or 'default'} {precision} I/O binding {io_binding} {size}")
+                continue
             data = path.read_bytes()
+            n = jobs_for(a, size)
             # Warm-up (cuDNN's algorithm search for this shape), finished before the clock starts.
-            wait_job(d.base, request(d.base + "/v1/jobs", data, "POST")["id"])
-            for clients in a.clients:
+            wait_job(d.base, request(url, data, "POST")["id"])
+            for clients in clients_list or a.clients:
                 jobs: list[dict] = []
                 lock = threading.Lock()
 
                 def client() -> None:
-                    for _ in range(a.jobs):
+                    for _ in range(n):
                         t = time.monotonic()
-                        j = wait_job(d.base, request(d.base + "/v1/jobs", data, "POST")["id"], poll=0.005)
+                        j = wait_job(d.base, request(url, data, "POST")["id"], poll=0.005)
                         with lock:
                             jobs.append({**j, "latency_s": time.monotonic() - t})
 
@@ -105,16 +117,17 @@ def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str, io_bindi
                 for t in threads:
                     t.join()
                 wall = time.monotonic() - t0
-                if len(jobs) != clients * a.jobs:
-                    raise RuntimeError(f"{size}, {clients} clients: {len(jobs)} of {clients * a.jobs} jobs succeeded")
+                if len(jobs) != clients * n:
+                    raise RuntimeError(f"{size}, {clients} clients: {len(jobs)} of {clients * n} jobs succeeded")
                 stages = {k: statistics.median(j["timings_ms"][k] for j in jobs)
                           for k in jobs[0]["timings_ms"] if isinstance(jobs[0]["timings_ms"][k], (int, float))}
-                rows.append({"frame": size, "precision": precision, "io_binding": io_binding,
+                rows.append({"frame": size, **({"variant": variant} if variant else {}),
+                             "precision": precision, "io_binding": io_binding,
                              "clients": clients, "jobs": len(jobs),
                              "frames_per_s": len(jobs) / wall,
                              "latency_p50_s": statistics.median(j["latency_s"] for j in jobs),
                              "job_stages_ms_median": stages})
-                print(f"{size} {precision}, I/O binding {io_binding}, {clients} clients: {len(jobs) / wall:.2f} frames/s, "
+                print(f"{size} {variant or 'default'} {precision}, I/O binding {io_binding}, {clients} clients: {len(jobs) / wall:.2f} frames/s, "
                       f"inference {stages.get('inference', 0):.1f} ms", file=sys.stderr)
     finally:
         d.stop()
@@ -147,33 +160,76 @@ def main() -> int:
     p.add_argument("--models", default=str(ROOT / "models"))
     p.add_argument("--bin", default=os.environ.get("MCDENOISE_BIN", str(ROOT / "target/release/mcdenoise")))
     p.add_argument("--oidn-benchmark", help="oidnBenchmark (pyoidn's, with its CUDA device beside it)")
+    p.add_argument("--variant-runs", default="",
+                   help="more variants to time (e.g. lin2020), each on the first size with one client: `variants`")
+    p.add_argument("--deadline", type=float, default=0,
+                   help="seconds after which the parts not yet started are skipped (listed under `skipped`); 0: none")
     p.add_argument("--out", required=True)
     a = p.parse_args()
     a.clients = [int(c) for c in a.clients.split(",")]
     precisions = [p for p in a.precisions.split(",") if p]
     sizes = [s for s in a.sizes.split(",") if s]
+    a.skipped = []
+    start = time.monotonic()
+    a.past_deadline = lambda: a.deadline > 0 and time.monotonic() - start > a.deadline
     work = Path(tempfile.mkdtemp(prefix="mcdenoise-gpu-"))
     frames = {}
     for size in sizes:
         w, h = map(int, size.split("x"))
         frames[size] = work / f"frame-{size}.exr"
         write_frame(frames[size], w, h)
+    gpu = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip() if a.device != "cpu" else ""
     report = {
         "command": " ".join(sys.argv),
         "device": a.device,
+        "machine": {"gpu": gpu, "cpu_threads": os.cpu_count()},
         "workers": a.workers,
         "threads_per_worker": a.threads,
-        "parity": [parity(a, work, p) for p in precisions],
-        "daemon": [row for p in precisions for io in a.io_bindings.split(",") if io
-                   for row in daemon_runs(a, work, frames, p, io)],
-        "oidn": oidn(a, sizes) if a.oidn_benchmark else None,
+        "jobs_per_client": {size: jobs_for(a, size) for size in sizes},
+        "parity": [],
+        "daemon": [],
+        "variants": [],
+        "oidn": None,
+        "errors": [],
+        "skipped": a.skipped,
     }
-    gpu = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True).stdout.strip() if a.device != "cpu" else ""
-    report["machine"] = {"gpu": gpu, "cpu_threads": os.cpu_count()}
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(report, indent=1) + "\n")
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    def section(name: str, run) -> None:
+        """Runs one part of the benchmark and writes the report so far: a part that fails is
+        recorded under `errors` and the rest still runs; past `--deadline`, under `skipped`."""
+        if a.past_deadline():
+            a.skipped.append(name)
+        else:
+            try:
+                run()
+            except Exception as e:  # noqa: BLE001 - the report names it, the other parts go on
+                report["errors"].append({"part": name, "error": f"{type(e).__name__}: {e}"[-4000:]})
+                print(f"{name}: {type(e).__name__}: {e}", file=sys.stderr)
+        report["elapsed_s"] = round(time.monotonic() - start, 1)
+        out.write_text(json.dumps(report, indent=1) + "\n")
+
+    def daemon(p: str, io: str) -> None:
+        section(f"daemon {p} I/O binding {io}", lambda: report["daemon"].extend(daemon_runs(a, work, frames, p, io)))
+
+    # The most telling parts first, in case the deadline cuts the rest: OIDN, every precision
+    # with the first I/O binding setting, parity, the other variants, the other settings.
+    io_bindings = [io for io in a.io_bindings.split(",") if io]
+    if a.oidn_benchmark:
+        section("oidn", lambda: report.__setitem__("oidn", oidn(a, sizes)))
+    for p in precisions:
+        daemon(p, io_bindings[0])
+    for p in precisions:
+        section(f"parity {p}", lambda p=p: report["parity"].append(parity(a, work, p)))
+    for v in [v for v in a.variant_runs.split(",") if v]:
+        section(f"variant {v}", lambda v=v: report["variants"].extend(
+            daemon_runs(a, work, {sizes[0]: frames[sizes[0]]}, "auto", "auto", variant=v, clients_list=[1])))
+    for io in io_bindings[1:]:
+        for p in precisions:
+            daemon(p, io)
     print(f"wrote {a.out}", file=sys.stderr)
-    return 0
+    return 1 if report["errors"] else 0
 
 
 if __name__ == "__main__":

@@ -27,6 +27,26 @@ def test_gpu_engine_bench_runs_on_the_cpu(tmp_path):
     # The network in half precision: near the engine's float32 output, not equal to it.
     assert (fp16["reconstruction"], fp16["precision"]) == ("graph", "fp16") and 0 < fp16["relative_to_max"] <= 2e-2
     assert [(row["frame"], row["precision"], row["io_binding"], row["clients"], row["jobs"]) for row in r["daemon"]] == [
-        ("96x64", p, io, c, j) for p in ("fp32", "fp16") for io in ("on", "off") for c, j in ((1, 2), (2, 4))]
+        ("96x64", p, io, c, j) for io in ("on", "off") for p in ("fp32", "fp16") for c, j in ((1, 2), (2, 4))]
     assert all(row["frames_per_s"] > 0 and row["job_stages_ms_median"]["inference"] > 0 for row in r["daemon"])
     assert r["oidn"] is None
+
+
+@needs_engine
+def test_gpu_engine_bench_reports_what_failed_and_what_the_deadline_skipped(tmp_path):
+    out = tmp_path / "gpu.json"
+    common = [sys.executable, str(ROOT / "benches" / "gpu_engine.py"), "--device", "cpu", "--sizes", "96x64",
+              "--jobs", "1", "--clients", "1", "--workers", "1", "--threads", "1", "--bin", BIN,
+              "--models", str(ROOT / "tests" / "fixtures" / "models" / "tiny-v2"), "--out", str(out)]
+    # A variant that is not loaded fails its part, named in `errors`; the others still ran.
+    run = subprocess.run([*common, "--precisions", "fp32", "--io-bindings", "off", "--variant-runs", "nosuch"],
+                         capture_output=True, env={**os.environ})
+    r = json.loads(out.read_text())
+    assert run.returncode == 1 and [e["part"] for e in r["errors"]] == ["variant nosuch"]
+    assert len(r["daemon"]) == 1 and len(r["parity"]) == 1 and r["variants"] == [] and r["skipped"] == []
+    # Past the deadline, every part is skipped and listed.
+    subprocess.run([*common, "--deadline", "1e-9"], check=True, capture_output=True, env={**os.environ})
+    r = json.loads(out.read_text())
+    assert r["daemon"] == [] and r["parity"] == [] and r["errors"] == []
+    assert r["skipped"] == ["daemon fp32 I/O binding on", "daemon fp16 I/O binding on", "parity fp32", "parity fp16",
+                            "daemon fp32 I/O binding off", "daemon fp16 I/O binding off"]
