@@ -18,7 +18,15 @@ Synthetic frames with every channel (`mcdenoise_train.frames.synthetic_frame`) a
   on the device once sessions are warm (the first job of each size is left out: it includes
   cuDNN's algorithm search);
 - OIDN (`oidnBenchmark -d cuda -r RT.hdr_alb_nrm.WxH`, HDR color with albedo and normal,
-  quality high), when `--oidn-benchmark` is given.
+  quality high), when `--oidn-benchmark` is given;
+- `--variant-runs` (e.g. `lin2020`): each variant through the daemon on the first size, one
+  client (`variants`).
+
+The parts run in the order OIDN, the daemon with the first `--io-bindings` setting for each
+precision, parity, the variants, the other settings; the report is written after each. A
+part that fails is named under `errors` (the exit status is then 1) and the others still
+run; with `--deadline S`, the parts not begun S seconds after the start are listed under
+`skipped`. Larger frames than 1080p get proportionally fewer `--jobs`.
 
 With `--device cpu` the same runs on the CPU build (CI runs it on a tiny frame).
 """
@@ -101,14 +109,19 @@ def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str, io_bindi
             wait_job(d.base, request(url, data, "POST")["id"])
             for clients in clients_list or a.clients:
                 jobs: list[dict] = []
+                failures: list[str] = []
                 lock = threading.Lock()
 
                 def client() -> None:
-                    for _ in range(n):
-                        t = time.monotonic()
-                        j = wait_job(d.base, request(url, data, "POST")["id"], poll=0.005)
+                    try:
+                        for _ in range(n):
+                            t = time.monotonic()
+                            j = wait_job(d.base, request(url, data, "POST")["id"], poll=0.005)
+                            with lock:
+                                jobs.append({**j, "latency_s": time.monotonic() - t})
+                    except Exception as e:  # noqa: BLE001 - reported below, with the part
                         with lock:
-                            jobs.append({**j, "latency_s": time.monotonic() - t})
+                            failures.append(f"{type(e).__name__}: {e}")
 
                 t0 = time.monotonic()
                 threads = [threading.Thread(target=client) for _ in range(clients)]
@@ -118,7 +131,8 @@ def daemon_runs(a, work: Path, frames: dict[str, Path], precision: str, io_bindi
                     t.join()
                 wall = time.monotonic() - t0
                 if len(jobs) != clients * n:
-                    raise RuntimeError(f"{size}, {clients} clients: {len(jobs)} of {clients * n} jobs succeeded")
+                    raise RuntimeError(f"{size}, {clients} clients: {len(jobs)} of {clients * n} jobs succeeded; "
+                                       f"first failure: {failures[0] if failures else 'none reported'}")
                 stages = {k: statistics.median(j["timings_ms"][k] for j in jobs)
                           for k in jobs[0]["timings_ms"] if isinstance(jobs[0]["timings_ms"][k], (int, float))}
                 rows.append({"frame": size, **({"variant": variant} if variant else {}),

@@ -170,6 +170,66 @@ def scale_out_section(report: dict) -> list[str]:
     return out
 
 
+def gpu_section(gpu: dict, split: dict | None) -> list[str]:
+    """The daemon on a GPU against OIDN's CUDA device (docs/results/gpu.json,
+    benches/gpu_engine.py) and where the frame time goes (gpu-split.json, benches/gpu_split.py)."""
+    oidn = {r["frame"]: r["ms_per_frame"] for r in gpu.get("oidn") or []}
+    out = ["### GPU: the daemon against OIDN's CUDA device", "",
+           f"Produced on a lent GPU ({gpu['machine']['gpu'].split(' (UUID')[0]}, {gpu['machine']['cpu_threads']} CPU "
+           f"threads) by `{gpu['device_command']}` (benches/gpu_engine.py, docs/training.md \"The engine on the "
+           f"GPU\"): synthetic frames with every channel; the daemon with {gpu['workers']} workers of "
+           f"{gpu['threads_per_worker']} threads, whole frames, the shipped models; each client submits "
+           f"{', '.join(f'{n} jobs of {s}' for s, n in gpu['jobs_per_client'].items())} in turn after a warm-up job. "
+           "`inference` is the job's own stage: the inputs' copy to the device, the network and its reconstruction "
+           "(in the graph), the outputs' copy back. OIDN: `oidnBenchmark -d cuda -r RT.hdr_alb_nrm.WxH` (HDR color, "
+           "albedo, normal; quality high), its buffers already on the device.", "",
+           "| frame | precision | I/O binding | clients | frames/s | latency p50 (s) | decode / preprocess / inference / "
+           "encode (ms, median) | OIDN CUDA (ms) | inference / OIDN |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in gpu["daemon"] + gpu.get("variants", []):
+        st = r["job_stages_ms_median"]
+        o = oidn.get(r["frame"])
+        what = r["precision"] if "variant" not in r else f"{r['variant']} ({r['precision']})"
+        out.append(f"| {r['frame']} | {what} | {r['io_binding']} | {r['clients']} | {r['frames_per_s']:.2f} | "
+                   f"{r['latency_p50_s']:.2f} | {st['decode']:.0f} / {st['preprocess']:.0f} / {st['inference']:.1f} / "
+                   f"{st['encode']:.0f} | {o:.2f} | {st['inference'] / o:.0f}× |" if o else f"{st['encode']:.0f} | | |")
+    for e in gpu.get("errors", []):
+        first = next((ln for ln in e["error"].splitlines() if "CUDA failure" in ln or "failed" in ln),
+                     e["error"].splitlines()[0])
+        out.append(f"\nFailed: **{e['part']}**: `{first.strip()[:300]}`")
+    for s in gpu.get("skipped", []):
+        out.append(f"\nNot run (past the deadline): {s}")
+    out += ["", "Parity: the same 320×192 frame through the GPU (reconstruction in the graph) and through the CPU "
+            "engine (float32, its own reconstruction): the largest difference relative to the largest value.", "",
+            "| precision | reconstruction | max abs difference | relative to the max |", "|---|---|---|---|"]
+    for r in gpu["parity"]:
+        out.append(f"| {r['precision']} | {r['reconstruction']} | {r['max_abs_diff']:.3g} | {r['relative_to_max']:.2g} |")
+    if split:
+        out += ["", "#### Where the frame time goes", "",
+                f"Produced by `{split['device_command']}` (benches/gpu_split.py, PyTorch {split['torch']}): the "
+                "shipped network and its reconstruction (the module `model-recon*.onnx` are exported from) on inputs "
+                "already on the device, eager and replayed as one CUDA graph, and the copies across PCIe on their own "
+                "(medians of CUDA-event timings). Frames padded to the network's multiple of 16.", "",
+                "| frame | network + reconstruction fp32 / fp16 (ms) | as a CUDA graph fp32 / fp16 (ms) | OIDN CUDA (ms) | "
+                "fp16 graph / OIDN | inputs to device, pageable / page-locked (ms) | outputs to host (ms) |",
+                "|---|---|---|---|---|---|---|"]
+        for r in split["rows"]:
+            o = next((v for k, v in oidn.items() if k.split("x")[0] == r["frame"].split("x")[0]), None)
+            ratio = f"{r['network_and_reconstruction_fp16_graph_ms'] / o:.1f}×" if o else ""
+            out.append(f"| {r['frame']} | {r['network_and_reconstruction_fp32_ms']:.1f} / "
+                       f"{r['network_and_reconstruction_fp16_ms']:.1f} | {r['network_and_reconstruction_fp32_graph_ms']:.1f}"
+                       f" / {r['network_and_reconstruction_fp16_graph_ms']:.1f} | {f'{o:.2f}' if o else ''} | {ratio} | "
+                       f"{r['inputs_to_device_pageable_ms']:.1f} / {r['inputs_to_device_pinned_ms']:.1f} "
+                       f"({r['input_mb']:.0f} MB) | {r['outputs_to_host_ms']:.1f} ({r['output_mb']:.0f} MB) |")
+        r = split["rows"][0]
+        copies = r["inputs_to_device_pageable_ms"] + r["outputs_to_host_ms"]
+        out += ["", f"At {r['frame']} the device's own work (fp16, {r['network_and_reconstruction_fp16_graph_ms']:.1f} ms) "
+                f"is a small part of the job's inference stage; the copies through pageable memory "
+                f"({r['inputs_to_device_pageable_ms']:.0f} ms in, {r['outputs_to_host_ms']:.0f} ms out, {copies:.0f} ms) "
+                "are most of it. Page-locked inputs (the I/O binding) would take "
+                f"{r['inputs_to_device_pinned_ms']:.1f} ms instead of {r['inputs_to_device_pageable_ms']:.0f}."]
+    return out
+
+
 def quality_time_section(report: dict) -> list[str]:
     out = ["", "### Quality against time", "",
            f"Produced by `{EVAL_CMD}` (benches/quality_time.py): mean RelMSE and DSSIM over the "
@@ -224,6 +284,11 @@ def main() -> int:
     scale_out = results / "scale-out.json"
     if scale_out.exists():
         lines += scale_out_section(json.loads(scale_out.read_text()))
+        lines.append("")
+    gpu = results / "gpu.json"
+    if gpu.exists():
+        split = results / "gpu-split.json"
+        lines += gpu_section(json.loads(gpu.read_text()), json.loads(split.read_text()) if split.exists() else None)
         lines.append("")
     lines += quality_section(results)
     Path(a.out).write_text("\n".join(lines) + "\n")

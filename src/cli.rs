@@ -132,7 +132,7 @@ pub struct RunArgs {
     pub precision: engine::Precision,
     /// ONNX Runtime's I/O binding for contract-v2 networks: `on` (the region's tensors in
     /// buffers ONNX Runtime allocated once per region shape, page-locked host memory on a
-    /// GPU), `off`, or `auto` (`on` on a GPU, `off` on the CPU).
+    /// GPU), `off`, or `auto` (`off` for now: with several workers on a GPU the binding failed).
     #[arg(long, env = "MCDENOISE_IO_BINDING", value_enum, default_value_t)]
     pub io_binding: engine::IoBinding,
     #[command(flatten)]
@@ -266,7 +266,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         "reconstruction": reconstruction.to_string(),
         "precision": used.map_or(engine::Precision::Fp32, |m| m.precision).name(),
         // Contract-v1 pairs run without it.
-        "io_binding": contract == 2 && config.io_binding.enabled(engine.device()),
+        "io_binding": contract == 2 && config.io_binding.enabled(),
         "threads": config.threads,
         "device": engine.device().to_string(),
         "flops_per_pixel": flops,

@@ -188,7 +188,7 @@ pub struct ServeArgs {
     pub precision: crate::engine::Precision,
     /// ONNX Runtime's I/O binding for contract-v2 networks: `on` (the region's tensors in
     /// buffers ONNX Runtime allocated once per region shape, page-locked host memory on a
-    /// GPU), `off`, or `auto` (`on` on a GPU, `off` on the CPU).
+    /// GPU), `off`, or `auto` (`off` for now: with several workers on a GPU the binding failed).
     #[arg(long, env = "MCDENOISE_IO_BINDING", value_enum, default_value_t, help_heading = "Models and workers")]
     pub io_binding: crate::engine::IoBinding,
     /// Workers, each with its own ONNX Runtime sessions, denoising one job at a time

@@ -248,8 +248,8 @@ fn run_ok(input: &std::path::Path, output: &std::path::Path, extra: &[&str]) {
 
 #[test]
 fn run_io_binding_is_reported_and_changes_no_pixel() {
-    // The contract-v2 fixtures, in tiles of several shapes; on the CPU `auto` leaves the
-    // binding off, `on` uses ONNX Runtime's CPU memory for the bound tensors.
+    // The contract-v2 fixtures, in tiles of several shapes; `auto` leaves the binding off,
+    // `on` uses ONNX Runtime's CPU memory for the bound tensors.
     let tmp = tempfile::tempdir().unwrap();
     let input = write_frame(tmp.path(), "in.exr", 70, 50, true);
     let v2 = tiny_models().with_file_name("tiny-v2");

@@ -82,7 +82,7 @@ pub struct EngineConfig {
     /// variant has `model-recon-fp16.onnx`).
     pub precision: Precision,
     /// Whether contract-v2 networks run through ONNX Runtime's I/O binding ([`IoBinding`];
-    /// `auto`: on a GPU).
+    /// `auto`: off).
     pub io_binding: IoBinding,
     /// Whether the albedo is prefiltered by its variance ([`albedo`]; `on` unless turned off).
     pub albedo_prefilter: AlbedoPrefilter,

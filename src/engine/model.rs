@@ -334,9 +334,8 @@ pub struct MultiScaleNetwork {
 /// bound for the last region shape, reused while the shape repeats (a frame's tiles have
 /// at most four shapes, and the inner ones come in runs).
 struct Binding {
-    /// `--io-binding on`: a failure to bind is the job's error; with `auto` the network
-    /// goes on without the binding.
-    required: bool,
+    /// A CUDA session: its binding and run hold `BOUND_RUNS`.
+    take_turns: bool,
     inputs_memory: MemoryInfo<'static>,
     outputs_memory: MemoryInfo<'static>,
     bound: Option<Bound>,
@@ -353,7 +352,7 @@ struct Bound {
 
 impl Binding {
     /// Where a `device` session's bound tensors live.
-    fn new(device: Device, required: bool) -> ort::Result<Binding> {
+    fn new(device: Device) -> ort::Result<Binding> {
         let (inputs_memory, outputs_memory) = match device {
             Device::Cuda(n) => {
                 let id = i32::try_from(n).unwrap_or(i32::MAX);
@@ -367,9 +366,16 @@ impl Binding {
                 (cpu()?, cpu()?)
             }
         };
-        Ok(Binding { required, inputs_memory, outputs_memory, bound: None })
+        Ok(Binding { take_turns: matches!(device, Device::Cuda(_)), inputs_memory, outputs_memory, bound: None })
     }
 }
+
+/// Held by a CUDA session from the binding of its inputs to the end of its run. On an H100
+/// (2026-11-27, docs/results.md "GPU") two workers binding at once failed: one worker's
+/// `synchronize_inputs` (a `cudaDeviceSynchronize`) while the other's first run was in CUDA
+/// stream capture (CUDA error 900). The GPU runs one network at a time anyway; the workers'
+/// decoding, preprocessing and encoding still overlap.
+static BOUND_RUNS: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 /// Largest pyramid depth the engine accepts (a 2^15-pixel pooling grid).
 const MAX_LEVELS: usize = 16;
@@ -468,8 +474,8 @@ impl MultiScaleNetwork {
             outputs,
             precision,
         };
-        let binding = if placement.io_binding.enabled(placement.device) {
-            let binding = Binding::new(placement.device, placement.io_binding == IoBinding::On)
+        let binding = if placement.io_binding.enabled() {
+            let binding = Binding::new(placement.device)
                 .map_err(|e| model_error(path, format!("cannot set up ONNX Runtime's I/O binding: {e}")))?;
             Some(binding)
         } else {
@@ -543,17 +549,15 @@ impl MultiScaleNetwork {
         let c = features.len() / (h * w);
         let name = self.info.variant;
         let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
+        // Bound runs on a GPU take turns across the process's workers (see `BOUND_RUNS`).
+        let _turn = self
+            .binding
+            .as_ref()
+            .filter(|b| b.take_turns)
+            .map(|_| BOUND_RUNS.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
         if let Some(binding) = &mut self.binding {
-            if let Err(e) = bind(&self.session, binding, [diffuse, specular, features], [c, h, w]) {
-                if binding.required {
-                    return Err(fail(e));
-                }
-                // `auto`: the job goes on with the tensors over the engine's buffers.
-                tracing::warn!(variant = %name, "ONNX Runtime's I/O binding failed, running without it: {e}");
-                self.binding = None;
-            }
-        }
-        if let Some(Binding { bound: Some(bound), .. }) = &self.binding {
+            bind(&self.session, binding, [diffuse, specular, features], [c, h, w]).map_err(fail)?;
+            let bound = binding.bound.as_ref().expect("bound by `bind`");
             return self.session.run_binding(&bound.io).map_err(fail);
         }
         let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
@@ -576,13 +580,15 @@ fn bind(session: &Session, binding: &mut Binding, data: [&[f32]; 3], dims: [usiz
         let allocator = Allocator::new(session, binding.inputs_memory.clone())?;
         let tensor = |channels: usize| Tensor::<f32>::new(&allocator, [1, channels, h, w]);
         let inputs = [tensor(COLOR_CHANNELS)?, tensor(COLOR_CHANNELS)?, tensor(c)?];
-        let mut io = session.create_binding()?;
-        for output in session.outputs() {
-            io.bind_output_to_device(output.name(), &binding.outputs_memory)?;
-        }
-        binding.bound = Some(Bound { dims, io, inputs });
+        binding.bound = Some(Bound { dims, io: session.create_binding()?, inputs });
     }
     let bound = binding.bound.as_mut().expect("bound above");
+    // The outputs are bound again before every run: after a run the binding holds the
+    // outputs it allocated, and a run handed those as its outputs failed on an H100
+    // (ONNX Runtime's CopyTensorAsync with its source equal to its destination).
+    for output in session.outputs() {
+        bound.io.bind_output_to_device(output.name(), &binding.outputs_memory)?;
+    }
     for ((name, tensor), src) in ["diffuse", "specular", "features"].into_iter().zip(&mut bound.inputs).zip(data) {
         tensor.extract_tensor_mut().1.copy_from_slice(src);
         bound.io.bind_input(name, tensor)?;

@@ -50,3 +50,16 @@ def test_gpu_engine_bench_reports_what_failed_and_what_the_deadline_skipped(tmp_
     assert r["daemon"] == [] and r["parity"] == [] and r["errors"] == []
     assert r["skipped"] == ["daemon fp32 I/O binding on", "daemon fp16 I/O binding on", "parity fp32", "parity fp16",
                             "daemon fp32 I/O binding off", "daemon fp16 I/O binding off"]
+
+
+def test_gpu_split_times_the_network_alone_on_the_cpu(tmp_path):
+    # benches/gpu_split.py on the CPU (wall clock): the shipped network and its reconstruction,
+    # float32 and half, on a frame padded to the network's multiple of 16.
+    out = tmp_path / "split.json"
+    subprocess.run([sys.executable, str(ROOT / "benches" / "gpu_split.py"), "--device", "cpu", "--sizes", "40x20",
+                    "--repeats", "1", "--out", str(out)], check=True, capture_output=True)
+    r = json.loads(out.read_text())
+    [row] = r["rows"]
+    assert row["frame"] == "48x32" and row["input_mb"] == 48 * 32 * 48 * 4 / 1e6
+    assert row["network_and_reconstruction_fp32_ms"] > 0 and row["network_and_reconstruction_fp16_ms"] > 0
+    assert row["output_mb"] == 2 * 3 * 48 * 32 * 4 / 1e6
