@@ -4,22 +4,15 @@
 //! numbers are printed (`cargo test --release --test fireflies -- --nocapture`);
 //! docs/fireflies.md lists them.
 
+mod common;
+
 use std::path::PathBuf;
 
+use common::fixture_frame as fixture;
 use mcdenoise::engine::preprocess::luminance;
 use mcdenoise::engine::{Engine, EngineConfig, Fireflies, Options, Variant};
-use mcdenoise::frame::{Buffer, Frame, Limits};
+use mcdenoise::frame::{Buffer, Frame};
 use mcdenoise::quality::relmse;
-
-fn fixture(name: &str) -> Frame {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames").join(name);
-    let bytes = std::fs::read(path).unwrap();
-    if name.contains("-ref") {
-        Frame::reference_from_exr_bytes(&bytes, &Limits::default()).unwrap()
-    } else {
-        Frame::from_exr_bytes(&bytes, &Limits::default()).unwrap()
-    }
-}
 
 /// A small deterministic generator (SplitMix64).
 struct Rng(u64);

@@ -6,7 +6,7 @@ mod common;
 
 use std::path::PathBuf;
 
-use common::{frame_of, max_rel_diff};
+use common::{fixture_frame, max_rel_diff};
 use mcdenoise::engine::device::{cuda_devices, cuda_provider_available};
 use mcdenoise::engine::{Device, Engine, EngineConfig, Options, Precision, Reconstruction};
 
@@ -42,8 +42,7 @@ fn the_gpu_denoises_as_the_cpu_does() {
     for (precision, tolerance) in [(Precision::Fp32, 3e-3), (Precision::Fp16, 1e-2)] {
         let mut gpu = engine(Device::Cuda(0), Reconstruction::Graph, precision);
         for name in ["cornell-spp8.exr", "caustic-spp8.exr", "cornell-nocov-spp8.exr"] {
-            let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames").join(name);
-            let frame = frame_of(&std::fs::read(path).unwrap());
+            let frame = fixture_frame(name);
             let a = gpu.denoise_with(&frame, Options::default(), &mut |_| true).unwrap();
             let b = cpu.denoise_with(&frame, Options::default(), &mut |_| true).unwrap();
             for c in 0..3 {

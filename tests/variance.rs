@@ -3,22 +3,15 @@
 //! of the samples (64 times too large at 64 spp), which the networks would otherwise trust
 //! far too much: `warn` reports them, `auto` undoes them.
 
+mod common;
+
 use std::path::PathBuf;
 
+use common::fixture_frame as fixture;
 use mcdenoise::engine::variance::{self, VarianceCheck, THRESHOLD, TYPICAL};
 use mcdenoise::engine::{Engine, EngineConfig, Options};
-use mcdenoise::frame::{Buffer, Frame, Limits};
+use mcdenoise::frame::{Buffer, Frame};
 use mcdenoise::quality::relmse;
-
-fn fixture(name: &str) -> Frame {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames").join(name);
-    let bytes = std::fs::read(path).unwrap();
-    if name.contains("-ref") {
-        Frame::reference_from_exr_bytes(&bytes, &Limits::default()).unwrap()
-    } else {
-        Frame::from_exr_bytes(&bytes, &Limits::default()).unwrap()
-    }
-}
 
 const SCENES: [(&str, &str); 3] = [
     ("cornell-spp8.exr", "cornell-ref.exr"),

@@ -81,6 +81,18 @@ pub fn parts(out: &Denoised) -> &Components {
     out.components.as_ref().expect("denoised without its components")
 }
 
+/// A committed fixture frame (tests/fixtures/frames) as the engine reads it: a reference
+/// (`*-ref.exr`) with its color alone, a noisy frame with every buffer.
+pub fn fixture_frame(name: &str) -> Frame {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames").join(name);
+    let bytes = std::fs::read(path).unwrap();
+    if name.contains("-ref") {
+        Frame::reference_from_exr_bytes(&bytes, &Default::default()).unwrap()
+    } else {
+        Frame::from_exr_bytes(&bytes, &Default::default()).unwrap()
+    }
+}
+
 pub fn frame_of(bytes: &[u8]) -> Frame {
     Frame::from_exr_bytes(bytes, &Default::default()).expect("valid frame")
 }
