@@ -39,3 +39,28 @@ def test_the_results_page_shows_int8_against_fp32_from_the_same_run(tmp_path):
     ratio = speed["int8"]["time_vs_fp32"]["engine"]
     assert f"| {ratio:.2f} |" in page and ratio > 0
     assert "bf16:" in page
+
+
+def test_the_results_page_shows_the_gpu_run_against_oidn(tmp_path):
+    # The committed GPU measurements (docs/results/gpu.json, gpu-split.json): each daemon row
+    # with its ratio to OIDN's CUDA time at that size, the parts that failed, the parity.
+    results = tmp_path / "results"
+    results.mkdir()
+    for name in ("gpu.json", "gpu-split.json"):
+        shutil.copy(ROOT / "docs" / "results" / name, results / name)
+    out = tmp_path / "results.md"
+    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
+                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    page = out.read_text()
+    gpu = json.loads((results / "gpu.json").read_text())
+    oidn = {o["frame"]: o["ms_per_frame"] for o in gpu["oidn"]}
+    assert "### GPU: the daemon against OIDN's CUDA device" in page
+    for row in gpu["daemon"]:
+        ratio = row["job_stages_ms_median"]["inference"] / oidn[row["frame"]]
+        assert f"{row['job_stages_ms_median']['inference']:.1f} / " in page and f"| {ratio:.0f}× |" in page
+    for e in gpu["errors"]:
+        assert f"Failed: **{e['part']}**" in page
+    for p in gpu["parity"]:
+        assert f"| {p['precision']} | {p['reconstruction']} | {p['max_abs_diff']:.3g} |" in page
+    assert "#### Where the frame time goes" in page
