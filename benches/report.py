@@ -189,9 +189,10 @@ def gpu_section(gpu: dict, split: dict | None) -> list[str]:
         st = r["job_stages_ms_median"]
         o = oidn.get(r["frame"])
         what = r["precision"] if "variant" not in r else f"{r['variant']} ({r['precision']})"
+        against = f"{o:.2f} | {st['inference'] / o:.0f}×" if o else " | "
         out.append(f"| {r['frame']} | {what} | {r['io_binding']} | {r['clients']} | {r['frames_per_s']:.2f} | "
                    f"{r['latency_p50_s']:.2f} | {st['decode']:.0f} / {st['preprocess']:.0f} / {st['inference']:.1f} / "
-                   f"{st['encode']:.0f} | {o:.2f} | {st['inference'] / o:.0f}× |" if o else f"{st['encode']:.0f} | | |")
+                   f"{st['encode']:.0f} | {against} |")
     for e in gpu.get("errors", []):
         first = next((ln for ln in e["error"].splitlines() if "CUDA failure" in ln or "failed" in ln),
                      e["error"].splitlines()[0])

@@ -64,3 +64,11 @@ def test_the_results_page_shows_the_gpu_run_against_oidn(tmp_path):
     for p in gpu["parity"]:
         assert f"| {p['precision']} | {p['reconstruction']} | {p['max_abs_diff']:.3g} |" in page
     assert "#### Where the frame time goes" in page
+    # A run without OIDN (`--oidn-benchmark` not given): the same rows, their OIDN cells empty.
+    (results / "gpu.json").write_text(json.dumps({**gpu, "oidn": None}))
+    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
+                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    rows = [ln for ln in out.read_text().splitlines() if ln.endswith("|  |  |")]
+    assert len(rows) == len(gpu["daemon"]) + len(gpu["variants"]), rows
+    assert all(ln.startswith(f"| {r['frame']} | ") for ln, r in zip(rows, gpu["daemon"] + gpu["variants"])), rows
