@@ -83,7 +83,8 @@ fixtures: setup-train
 
 ## Training (training/mcdenoise_train/train.py). The defaults are the network size that
 ## trains on a 2-core CPU in about half an hour; for the paper's size on a GPU use
-## TRAIN_ARGS="--width 64 --blocks 8 --predictor-width 128 --predictor-depth 4 --head-kernel 3 --patch 128 --steps 50000".
+## TRAIN_ARGS="--width 64 --blocks 8 --predictor-width 128 --predictor-depth 4 --head-kernel 3 --patch 128 --steps 50000 --lr 5e-5"
+## (train_ms saturated that size's kernels at 1e-4: docs/training.md, "The paper's network at its width").
 VARIANT ?= full
 RUN ?= runs/$(VARIANT)
 TRAIN_ARGS ?= --width 24 --blocks 4 --predictor-width 48 --predictor-depth 4 --head-kernel 1 \

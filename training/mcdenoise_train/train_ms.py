@@ -26,7 +26,8 @@ Recipe:
 - **Distillation** (`--teacher CKPT --distill W`): the loss is (1 − W) × the loss above
   against the reference plus W × the same loss against a trained network's output on the
   same patch, for a cheaper shape learning from the shipped one (`--init … --reshape`).
-- **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine), bf16 autocast on CUDA.
+- **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine; by default 2e-3 for the
+  production network, 5e-5 for the paper's, `PEAK_LR`), bf16 autocast on CUDA.
 - **Checkpoints** (`runs` directory, `checkpoint.py`): `best.pt` (network weights and
   config, selected on the validation frames by mean log RelMSE + mean log DSSIM),
   `state.pt` (network, optimizer, scheduler, step: `--resume` continues), `log.jsonl`,
@@ -325,9 +326,22 @@ def validate(net: MSNet, val: FrameSet, zero_cov: bool = False, beauty: bool = F
         rel.append(float(losses.relmse(out, ref)))
         dssim.append(float(losses.dssim(out, ref)))
         inp.append(float(losses.relmse(noisy, ref)))
+    v = {"relmse": float(np.mean(rel)), "dssim": float(np.mean(dssim)), "input_relmse": float(np.mean(inp)),
+         "score": float(np.mean(np.log(rel)) + np.mean(np.log(np.maximum(dssim, 1e-6))))}
+    if isinstance(net, Lin2020Pair) and len(val) and not zero_cov:
+        v["kernel_peak"] = kernel_peak(net, val.raw[0:1], val.maxima[0:1])
     net.train()
-    return {"relmse": float(np.mean(rel)), "dssim": float(np.mean(dssim)), "input_relmse": float(np.mean(inp)),
-            "score": float(np.mean(np.log(rel)) + np.mean(np.log(np.maximum(dssim, 1e-6))))}
+    return v
+
+
+@torch.no_grad()
+def kernel_peak(net: Lin2020Pair, raw: torch.Tensor, maxima: torch.Tensor) -> float:
+    """The mean over pixels and both components of a frame of the largest weight of each
+    21x21 kernel: 1/441 for a box, 1 for one-hot kernels (saturated, they pass no gradient)."""
+    b = preprocess(raw, maxima[:, 0], maxima[:, 1], "full")
+    peaks = [torch.softmax(sub(b[c], b["features"]).float(), 1).amax(1).mean()
+             for c, sub in (("diffuse", net.diffuse), ("specular", net.specular))]
+    return float(sum(peaks) / len(peaks))
 
 
 def export_lin2020(checkpoint: Path, models: Path) -> None:
@@ -341,6 +355,13 @@ def export_lin2020(checkpoint: Path, models: Path) -> None:
         print(f"{path}: {net.param_count()} params, {net.flops_per_pixel()} FLOP/px", file=sys.stderr)
 
 
+# Peak learning rates by architecture. The paper's network at its width (8 residual blocks
+# of 64 channels per extractor, a 3x3 head over 128 channels; no normalisation) grows its
+# activations under Adam at the production network's rate until its softmax saturates: one-hot
+# kernels, which pass no gradient (docs/training.md, "The paper's network at its width").
+PEAK_LR = {"msnet": 2e-3, "lin2020": 5e-5}
+
+
 def parse(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", action="append", required=True, help="data set directory (repeatable)")
@@ -348,7 +369,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=20000)
     p.add_argument("--batch", type=int, default=16)
     p.add_argument("--patch", type=int, default=128)
-    p.add_argument("--lr", type=float, default=2e-3, help="peak learning rate of the one-cycle schedule")
+    p.add_argument("--lr", type=float, default=None,
+                   help="peak learning rate of the one-cycle schedule (default by --arch: "
+                        + ", ".join(f"{k} {v:g}" for k, v in PEAK_LR.items()) + ")")
     p.add_argument("--exposure", type=float, default=2.0, help="exposure augmentation range in stops (±)")
     p.add_argument("--fireflies", type=float, default=0.25, help="fraction of patches with injected fireflies")
     p.add_argument("--cov-dropout", type=float, default=0.3, help="fraction of patches with covariance zeroed")
@@ -414,6 +437,8 @@ def main(argv=None) -> int:
         raise SystemExit("--reshape needs --init (the checkpoint whose weights start the new shape)")
     if a.teacher and a.arch != "msnet":
         raise SystemExit("--teacher distils into the production network (--arch msnet)")
+    if a.lr is None:
+        a.lr = PEAK_LR[a.arch]
     if not 0.0 <= a.distill <= 1.0:
         raise SystemExit(f"--distill {a.distill}: the teacher's share of the loss is between 0 and 1")
     torch.set_num_threads(max(1, a.threads))
@@ -570,8 +595,9 @@ def main(argv=None) -> int:
                 v["nocov"] = validate(net, val, zero_cov=True)
             v.update(step=step, time=time.time() - t0)
             append_jsonl(out / "val.jsonl", v)
+            peak = f", largest kernel weight {v['kernel_peak']:.3f}" if "kernel_peak" in v else ""
             print(f"validation at {step}: RelMSE {v['relmse']:.5f} DSSIM {v.get('dssim', float('nan')):.4f} "
-                  f"(input {v.get('input_relmse', float('nan')):.4f})", file=sys.stderr, flush=True)
+                  f"(input {v.get('input_relmse', float('nan')):.4f}){peak}", file=sys.stderr, flush=True)
             if v["score"] < best:
                 best = v["score"]
                 if isinstance(net, Lin2020Pair):

@@ -233,10 +233,24 @@ def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
                           "--lin-width", "4", "--lin-blocks", "1", "--lin-predictor-width", "4", "--steps", "2",
                           "--patch", "32", "--batch", "2", "--threads", "2", "--device", "cpu",
                           "--export", str(models)]) == 0
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["lr"] == train_ms.PEAK_LR["lin2020"]
+    # Validation reports how peaked the kernels are (one-hot kernels are a run that has failed).
+    val = [json.loads(line) for line in (tmp_path / "run" / "val.jsonl").read_text().splitlines()]
+    assert 1 / 441 <= val[-1]["kernel_peak"] < 0.5 and "kernel_peak" not in val[-1]["nocov"]
     for c in ("diffuse", "specular"):
         meta = read_metadata(models / "lin2020" / f"{c}.onnx")
         assert meta["mcdenoise.contract"] == "1" and meta["mcdenoise.variant"] == "lin2020"
         assert meta["mcdenoise.component"] == c and meta["mcdenoise.kernel_size"] == "21"
+
+
+def test_the_learning_rate_defaults_by_architecture():
+    # The paper's network saturates its kernels at the production network's rate
+    # (docs/training.md, "The paper's network at its width"); an explicit --lr wins.
+    base = ["--data", "d", "--out", "o"]
+    for arch, lr in (("msnet", 2e-3), ("lin2020", 5e-5)):
+        a = train_ms.parse(base + ["--arch", arch])
+        assert a.lr is None and train_ms.PEAK_LR[arch] == lr
+    assert train_ms.parse(base + ["--arch", "lin2020", "--lr", "1e-4"]).lr == 1e-4
 
 
 def test_as_beauty_is_a_frame_without_the_split():
