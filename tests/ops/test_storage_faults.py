@@ -95,7 +95,9 @@ def sigkill(d: Daemon):
 
 
 def files_under(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file()}
+    """The files under root, less the storage health check's probe (written and removed
+    every few seconds in jobs/, and left behind when a kill lands mid-check)."""
+    return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() and not p.name.startswith(".health-probe")}
 
 
 @contextlib.contextmanager
