@@ -7,6 +7,9 @@
 //! call per element, which stops vectorisation, hence the polynomial below: the same code
 //! compiled for AVX2 with FMA where the CPU has them, chosen once at run time, as the
 //! reconstruction's row filter is.
+//!
+//! The same polynomial gives the specular color's ln(1 + s) before the networks
+//! ([`log1p_row`]), and [`expm1_row`] takes their specular output back from log space.
 
 use rayon::prelude::*;
 
@@ -88,6 +91,78 @@ pub(super) fn symlog<M: MulAdd>(x: f32) -> f32 {
     log1p.copysign(x)
 }
 
+/// ln(1 + x) of every element of `row` (all ≥ 0: the specular color before the networks)
+/// in place, on the calling thread: [`symlog`], which equals log1p on non-negative values,
+/// compiled for AVX2 with FMA where the CPU has them. `f32::ln_1p` is a libm call per
+/// element.
+pub fn log1p_row(row: &mut [f32]) {
+    kernel()(row)
+}
+
+/// e^x − 1 of every element of `row` in place (the specular output back from log space),
+/// on the calling thread, vectorised as [`log1p_row`] is; [`expm1`].
+pub fn expm1_row(row: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            // SAFETY: the CPU supports AVX2 and FMA (checked above).
+            unsafe { expm1_avx2(row) };
+            return;
+        }
+    }
+    expm1_slice::<Unfused>(row)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn expm1_avx2(row: &mut [f32]) {
+    expm1_slice::<Fused>(row)
+}
+
+#[inline(always)]
+fn expm1_slice<M: MulAdd>(row: &mut [f32]) {
+    for x in row {
+        *x = expm1::<M>(*x);
+    }
+}
+
+/// e^x − 1 with expm1's accuracy (relative error below 3e-7 where the result is finite;
+/// `fast_expm1_is_accurate` checks it against f64), branch-free so that loops vectorise.
+///
+/// `x = n·ln 2 + f` with `n` an integer and `|f| ≤ ln 2 / 2` (Cody–Waite split of ln 2, as
+/// in `reconstruct::exp_nonpositive`); `e^f − 1` is its Taylor series to `f⁸/8!` without
+/// the constant term (relative error below 3e-8 on that interval), and
+/// `e^x − 1 = 2^n·(e^f − 1) + (2^n − 1)`, exact in `f` for `n = 0`, where the result is
+/// small, and without cancellation otherwise (|e^x − 1| > 0.29 there). `x` is clamped to
+/// [−88, 88]: below, the result is −1 to f32 precision; above, the exponent saturates to
+/// infinity, as `f32::exp_m1` does.
+#[inline(always)]
+pub(super) fn expm1<M: MulAdd>(x: f32) -> f32 {
+    const LN2_HI: f32 = 0.693_359_4;
+    const LN2_LO: f32 = -2.121_944_4e-4;
+    const ROUND: f32 = 12_582_912.0;
+    let big = x > 88.0;
+    let x = x.clamp(-88.0, 88.0);
+    let t = M::mul_add(x, std::f32::consts::LOG2_E, ROUND);
+    let n = t - ROUND;
+    let f = M::mul_add(n, -LN2_LO, M::mul_add(n, -LN2_HI, x));
+    // (e^f − 1) / f = 1 + f/2 + f²/6 + … + f⁷/8!, by Horner.
+    let mut p = 1.0 / 40320.0;
+    for c in [1.0 / 5040.0, 1.0 / 720.0, 1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0] {
+        p = M::mul_add(p, f, c);
+    }
+    let em1_f = p * f;
+    // 2^n from its bits; n in [−127, 127] after the clamp, so 2^n is a normal or 2^−127.
+    let ni = t.to_bits().wrapping_sub(ROUND.to_bits()) as i32;
+    let two_n = f32::from_bits((ni.wrapping_add(127).max(0) << 23) as u32);
+    let r = M::mul_add(two_n, em1_f, two_n - 1.0);
+    if big {
+        f32::INFINITY
+    } else {
+        r
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -120,6 +195,52 @@ mod tests {
     fn fast_symlog_is_accurate() {
         for (name, (err, at)) in [("mul+add", worst_error::<Unfused>()), ("fma", worst_error::<Fused>())] {
             assert!(err < 3e-7, "{name}: relative error {err:e} at x = {at:e}");
+        }
+    }
+
+    fn worst_expm1_error<M: MulAdd>() -> (f64, f32) {
+        let mut worst = (0f64, 0f32);
+        let mut check = |x: f32| {
+            let want = (x as f64).exp_m1();
+            let got = expm1::<M>(x) as f64;
+            let err = if want == 0.0 { got.abs() } else { ((got - want) / want).abs() };
+            if want.is_finite() && want < f32::MAX as f64 && err > worst.0 {
+                worst = (err, x);
+            }
+        };
+        for x in
+            [0.0, -0.0, 1e-30, -1e-30, 1e-8, -1e-8, 0.3466, -0.3466, 0.3467, -0.3467, 1.0, -1.0, 88.0, -88.0, -100.0]
+        {
+            check(x);
+        }
+        // Dense over [−2, 2], where n goes from −3 to 3, and logarithmic to ±88.
+        for i in 0..=400_000 {
+            check(-2.0 + 4.0 * i as f32 / 400_000.0);
+            let x = 10f64.powf(-30.0 + 31.94 * i as f64 / 400_000.0) as f32;
+            check(x);
+            check(-x);
+        }
+        worst
+    }
+
+    #[test]
+    fn fast_expm1_is_accurate() {
+        for (name, (err, at)) in [("mul+add", worst_expm1_error::<Unfused>()), ("fma", worst_expm1_error::<Fused>())] {
+            assert!(err < 3e-7, "{name}: relative error {err:e} at x = {at:e}");
+        }
+        assert_eq!(expm1::<Unfused>(89.0), f32::INFINITY);
+        assert_eq!(expm1::<Unfused>(-200.0), -1.0);
+        let mut row: Vec<f32> = (0..1000).map(|i| (i as f32 - 500.0) * 0.01).collect();
+        let want: Vec<f64> = row.iter().map(|&x| (x as f64).exp_m1()).collect();
+        expm1_row(&mut row);
+        for (g, w) in row.iter().zip(&want) {
+            assert!((*g as f64 - w).abs() <= 3e-7 * w.abs(), "{g} vs {w}");
+        }
+        let mut row: Vec<f32> = (0..1000).map(|i| i as f32 * 0.37).collect();
+        let want: Vec<f64> = row.iter().map(|&x| (x as f64).ln_1p()).collect();
+        log1p_row(&mut row);
+        for (g, w) in row.iter().zip(&want) {
+            assert!((*g as f64 - w).abs() <= 3e-7 * w.abs(), "{g} vs {w}");
         }
     }
 

@@ -776,8 +776,9 @@ fn finish_core(diffuse: &mut [f32], specular: &mut [f32], albedo: &[PlaneRef<'_>
     );
     debug_assert_eq!(diffuse.len(), 3 * cn);
     specular.par_chunks_mut(core.w).for_each(|row| {
+        compress::expm1_row(row);
         for s in row {
-            *s = saturate(s.exp_m1());
+            *s = saturate(*s);
         }
     });
 }

@@ -155,7 +155,12 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             with_gradients(
                 frame,
                 rect,
-                each_pixel(|i| s[i].max(0.0).ln_1p()),
+                |start, out: &mut [f32]| {
+                    for (o, v) in out.iter_mut().zip(&s[start..]) {
+                        *o = v.max(0.0);
+                    }
+                    super::compress::log1p_row(out);
+                },
                 &mut base[c * n..][..n],
                 &mut gx[c * n..][..n],
                 &mut gy[c * n..][..n],
