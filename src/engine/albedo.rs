@@ -281,6 +281,7 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
     let Planes { albedo, variance, w, h } = planes;
     let (w, h) = (*w, *h);
     let rows = out[0].len() / w;
+    // The rows the band reads, as f32: its own, the patch margin and the window's reach.
     let reach = PATCH + RADIUS;
     let (lo, hi) = (y0.saturating_sub(reach), (y0 + rows + reach).min(h));
     let albedo: [Vec<f32>; 3] = std::array::from_fn(|c| {
@@ -288,6 +289,7 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
         albedo[c].read(lo * w, &mut rows);
         rows
     });
+    // 1 for a reflectance, 0 for what is not (NaN included); a weight factor.
     let reflectance: Vec<f32> =
         (0..(hi - lo) * w).map(|i| f32::from(u8::from(albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE)))).collect();
     let v = &variance[lo * w..hi * w];
@@ -365,6 +367,7 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
         }
     }
 }
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -22,35 +22,58 @@ const CHUNK: usize = 1 << 14;
 /// Replaces every element `x` of `data` by symlog(x), in parallel on the caller's rayon
 /// pool. Inputs are finite (the preprocessing saturates them to ±1e20).
 pub fn symlog_in_place(data: &mut [f32]) {
-    let kernel = kernel();
+    let kernel = kernel::<Symlog>();
     data.par_chunks_mut(CHUNK).for_each(kernel);
+}
+
+/// A function applied to every element of a slice, written once for both builds.
+trait Elementwise {
+    fn at<M: MulAdd>(x: f32) -> f32;
+}
+
+struct Symlog;
+struct Expm1;
+
+impl Elementwise for Symlog {
+    #[inline(always)]
+    fn at<M: MulAdd>(x: f32) -> f32 {
+        symlog::<M>(x)
+    }
+}
+
+impl Elementwise for Expm1 {
+    #[inline(always)]
+    fn at<M: MulAdd>(x: f32) -> f32 {
+        expm1::<M>(x)
+    }
 }
 
 type Kernel = fn(&mut [f32]);
 
-fn kernel() -> Kernel {
+/// `E` over a slice in place, for this CPU.
+fn kernel<E: Elementwise>() -> Kernel {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
             return |chunk| {
                 // SAFETY: the CPU supports AVX2 and FMA (checked above).
-                unsafe { symlog_avx2(chunk) }
+                unsafe { slice_avx2::<E>(chunk) }
             };
         }
     }
-    symlog_slice::<Unfused>
+    slice::<E, Unfused>
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-unsafe fn symlog_avx2(chunk: &mut [f32]) {
-    symlog_slice::<Fused>(chunk)
+unsafe fn slice_avx2<E: Elementwise>(chunk: &mut [f32]) {
+    slice::<E, Fused>(chunk)
 }
 
 #[inline(always)]
-fn symlog_slice<M: MulAdd>(chunk: &mut [f32]) {
+fn slice<E: Elementwise, M: MulAdd>(chunk: &mut [f32]) {
     for x in chunk {
-        *x = symlog::<M>(*x);
+        *x = E::at::<M>(*x);
     }
 }
 
@@ -96,34 +119,13 @@ pub(super) fn symlog<M: MulAdd>(x: f32) -> f32 {
 /// compiled for AVX2 with FMA where the CPU has them. `f32::ln_1p` is a libm call per
 /// element.
 pub fn log1p_row(row: &mut [f32]) {
-    kernel()(row)
+    kernel::<Symlog>()(row)
 }
 
 /// e^x − 1 of every element of `row` in place (the specular output back from log space),
 /// on the calling thread, vectorised as [`log1p_row`] is; [`expm1`].
 pub fn expm1_row(row: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU supports AVX2 and FMA (checked above).
-            unsafe { expm1_avx2(row) };
-            return;
-        }
-    }
-    expm1_slice::<Unfused>(row)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn expm1_avx2(row: &mut [f32]) {
-    expm1_slice::<Fused>(row)
-}
-
-#[inline(always)]
-fn expm1_slice<M: MulAdd>(row: &mut [f32]) {
-    for x in row {
-        *x = expm1::<M>(*x);
-    }
+    kernel::<Expm1>()(row)
 }
 
 /// e^x − 1 with expm1's accuracy (relative error below 3e-7 where the result is finite;
