@@ -183,10 +183,16 @@ impl JobService {
         self.update_depth(st);
     }
 
-    /// Puts `record` back in memory as it was read (a claim that could not be written).
-    fn restore(&self, record: JobRecord) {
+    /// Puts `record` back in memory as it was read (a claim that could not be written),
+    /// unless a later revision arrived meanwhile: the watch may have applied another
+    /// replica's change while the write was timing out, and the read record would hide it
+    /// for good (the watch's cursor counts that change as seen).
+    pub(super) fn restore(&self, record: JobRecord) {
         let mut st = self.lock();
         let Some(entry) = st.jobs.get_mut(&record.id) else { return };
+        if entry.record.rev > record.rev {
+            return;
+        }
         let queued = record.state == JobState::Queued;
         let (priority, seq, id) = (record.options.priority, record.seq, record.id.clone());
         entry.record = record;

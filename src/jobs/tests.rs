@@ -304,6 +304,32 @@ async fn cancel_ends_a_queued_job_at_once_and_a_running_one_at_its_next_tile() {
     h.stop();
 }
 
+/// A shared-mode claim whose write fails puts back the record it read, but never over a
+/// later revision the watch applied meanwhile (another replica ran the job while the write
+/// was timing out: the stale record would show it queued for good).
+#[tokio::test(start_paused = true)]
+async fn a_failed_claim_puts_back_the_read_record_but_not_over_a_later_one() {
+    let h = Harness::start(settings(8), Gate::closed()).await;
+    let running = h.submit_new(64, options(Priority::Normal)).await;
+    h.until_state(&running, JobState::Running).await;
+    let id = h.submit_new(32, options(Priority::Normal)).await;
+    let read = h.service.lock().jobs[&id].record.clone();
+    let mut later = read.clone();
+    later.rev = read.rev + 1;
+    later.state = JobState::Succeeded;
+    h.service.lock().jobs.get_mut(&id).unwrap().record = later;
+    h.service.restore(read.clone());
+    let held = h.service.lock().jobs[&id].record.clone();
+    assert_eq!((held.rev, held.state), (read.rev + 1, JobState::Succeeded), "the later revision stays");
+
+    // Nothing newer arrived: the read record comes back (the claim's changes undone).
+    h.service.lock().jobs.get_mut(&id).unwrap().record.rev = read.rev;
+    h.service.restore(read.clone());
+    let held = h.service.lock().jobs[&id].record.clone();
+    assert_eq!((held.rev, held.state), (read.rev, JobState::Queued));
+    h.stop();
+}
+
 #[tokio::test(start_paused = true)]
 async fn deadlines_fail_queued_jobs_in_the_sweep_and_running_jobs_between_tiles() {
     let h = Harness::start(settings(8), Gate::closed()).await;
