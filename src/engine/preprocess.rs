@@ -141,9 +141,12 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             );
         }
         let dv = frame.rgb(Buffer::DiffuseVariance);
-        per_pixel(frame, rect, var, |i| {
-            let v = |c: usize| bounded(dv[c].get(i) / (albedo[c].get(i).max(0.0) + EPS).powi(2));
-            bounded(luminance(v(0), v(1), v(2)))
+        variance_luminance(frame, rect, var, 1.0, |c, start, v, a| {
+            dv[c].read(start, v);
+            albedo[c].read(start, a);
+            for (v, a) in v.iter_mut().zip(a.iter()) {
+                *v = bounded(*v / (a.max(0.0) + EPS).powi(2));
+            }
         });
     }
     // Specular color: ln(1 + s); variance scaled by 1 / (1 + s)² (delta method).
@@ -167,9 +170,11 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             );
         }
         let sv = frame.rgb(Buffer::SpecularVariance);
-        per_pixel(frame, rect, var, |i| {
-            let v = |c: usize| bounded(sv[c].get(i) / (1.0 + s[c][i].max(0.0)).powi(2));
-            bounded(luminance(v(0), v(1), v(2)))
+        variance_luminance(frame, rect, var, 1.0, |c, start, v, _| {
+            sv[c].read(start, v);
+            for (v, s) in v.iter_mut().zip(&s[c][start..]) {
+                *v = bounded(*v / (1.0 + s.max(0.0)).powi(2));
+            }
         });
     }
     // Features: normal (3), albedo (3), depth, [covariance]; their variances; gx; gy.
@@ -214,9 +219,9 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
         }
         for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {
             let planes = frame.rgb(buffer);
-            per_pixel(frame, rect, &mut vars[j * n..][..n], |i| {
-                let v = |c: usize| bounded(planes[c].get(i));
-                bounded(luminance(v(0), v(1), v(2)) * scale)
+            variance_luminance(frame, rect, &mut vars[j * n..][..n], scale, |c, start, v, _| {
+                planes[c].read(start, v);
+                v.iter_mut().for_each(|v| *v = bounded(*v));
             });
         }
     }
@@ -238,14 +243,30 @@ fn color_layout(t: &mut [f32], n: usize) -> [&mut [f32]; 4] {
     [base, var, gx, gy]
 }
 
-/// Fills `out` (the rect's pixels, row-major) with `f` of each pixel's frame index.
-fn per_pixel(frame: &Frame, rect: Rect, out: &mut [f32], f: impl Fn(usize) -> f32 + Sync) {
-    out.par_chunks_mut(rect.w).enumerate().for_each(|(row, out)| {
-        let start = (rect.y + row) * frame.width + rect.x;
-        for (x, o) in out.iter_mut().enumerate() {
-            *o = f(start + x);
-        }
-    });
+/// Fills `out` (the rect's pixels, row-major) with the saturated luminance, times `scale`,
+/// of a three-channel variance. `channel(c, start, row, scratch)` writes channel `c` of the
+/// `row.len()` pixels from frame index `start` into `row` (`scratch` is a row of its own
+/// for a second plane). A row at a time, so that the arithmetic runs on slices and
+/// vectorises, where reading each sample through its plane's type would not.
+fn variance_luminance(
+    frame: &Frame,
+    rect: Rect,
+    out: &mut [f32],
+    scale: f32,
+    channel: impl Fn(usize, usize, &mut [f32], &mut [f32]) + Sync,
+) {
+    out.par_chunks_mut(rect.w).enumerate().for_each_init(
+        || [(); 4].map(|_| vec![0f32; rect.w]),
+        |[r, g, b, scratch], (row, out)| {
+            let start = (rect.y + row) * frame.width + rect.x;
+            for (c, values) in [&mut *r, &mut *g, &mut *b].into_iter().enumerate() {
+                channel(c, start, values, scratch);
+            }
+            for (((o, r), g), b) in out.iter_mut().zip(r.iter()).zip(g.iter()).zip(b.iter()) {
+                *o = bounded(luminance(*r, *g, *b) * scale);
+            }
+        },
+    );
 }
 
 /// A row function for [`with_gradients`] from a function of each pixel's frame index.
