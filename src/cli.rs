@@ -10,7 +10,7 @@ use ndarray::{Array0, Array3};
 use serde_json::json;
 
 use crate::config::{AlbedoArgs, FireflyArgs, VarianceArgs};
-use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, Rect, Variant, EPS};
+use crate::engine::{self, preprocess, Engine, EngineConfig, FeatureSet, ModelLoading, Rect, Variant, EPS};
 use crate::frame::{Buffer, ChannelMaps, Frame, Limits, Plane, PlaneRef};
 use crate::jobs::Layer;
 use crate::pipeline::{self, Failure, Input};
@@ -77,7 +77,8 @@ pub struct RunArgs {
     /// Reference frame: prints RelMSE, DSSIM, PSNR and SMAPE of input and output.
     #[arg(long)]
     pub reference: Option<PathBuf>,
-    /// Directory with the model variants (`full/`, `nocov/`, ...).
+    /// Directory with the model variants (`full/`, `nocov/`, ...). Every variant there is
+    /// found, but only the networks of the one the frame is denoised with are loaded.
     #[arg(long, env = "MCDENOISE_MODELS", default_value = "models")]
     pub models: PathBuf,
     /// Tile side in pixels (0: whole frame at once).
@@ -217,6 +218,8 @@ pub fn run(args: RunArgs) -> Result<()> {
     config.precision = args.precision;
     config.io_binding = args.io_binding;
     config.albedo_prefilter = args.albedo.albedo_prefilter;
+    // One frame: only the variant it is denoised with is worth its sessions.
+    config.loading = ModelLoading::OnDemand;
 
     let t = Instant::now();
     let mut engine = Engine::load(&config)?;
@@ -282,7 +285,8 @@ pub fn run(args: RunArgs) -> Result<()> {
         "albedo_prefilter": config.albedo_prefilter,
         "variance_check": args.variances.variance_check,
         "timings_ms": {
-            "load_models": load_ms,
+            // Found at load, the used variant's networks created on first use.
+            "load_models": load_ms + engine.loaded_on_demand().as_secs_f64() * 1e3,
             "decode": timings.decode,
             "fireflies": out.fireflies_ms,
             "preprocess": timings.preprocess - out.fireflies_ms,

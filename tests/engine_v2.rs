@@ -9,8 +9,8 @@ use std::path::Path;
 
 use common::*;
 use mcdenoise::engine::{
-    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding, Options,
-    Outputs, Precision, Reconstruction, Variant,
+    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding,
+    ModelLoading, Options, Outputs, Precision, Reconstruction, Variant,
 };
 use model_dirs::*;
 
@@ -327,6 +327,46 @@ fn any_directory_is_a_variant_and_contracts_mix() {
     assert!(err.contains("the `lin2020` model needs a `covariance` channel"), "{err}");
     let err = e.denoise(&with_cov, Variant::parse("oidn"), &mut |_| true).err().unwrap().to_string();
     assert!(err.contains("no `oidn` model is loaded (loaded: full, lin2020, nocov)"), "{err}");
+}
+
+/// `ModelLoading::OnDemand` (what `mcdenoise run` uses): the variants are found at load and
+/// each one's networks created when a frame first needs them, with the same results as a
+/// whole load; a broken variant that no frame uses does not stop the others.
+#[test]
+fn on_demand_loading_creates_only_the_networks_a_frame_uses() {
+    let dir = mixed();
+    let mut config = EngineConfig::new(dir.path());
+    (config.tile, config.tile_v2, config.threads) = (32, 32, 2);
+    config.loading = ModelLoading::OnDemand;
+    let mut lazy = Engine::load(&config).unwrap();
+    let lin2020 = Variant::parse("lin2020").unwrap();
+    assert_eq!(lazy.variants(), vec![Variant::Full, lin2020, Variant::Nocov]);
+    assert!(lazy.models().is_empty(), "nothing created before a frame");
+    let loaded = |e: &Engine| e.models().iter().map(|m| m.variant.to_string()).collect::<Vec<_>>();
+
+    let with_cov = synthetic_frame(40, 36, true);
+    let out = lazy.denoise(&with_cov, None, &mut |_| true).unwrap();
+    assert_eq!((out.variant, loaded(&lazy)), (Variant::Full, vec!["full".to_string()]));
+    let eager = engine_at(dir.path(), 32).denoise(&with_cov, None, &mut |_| true).unwrap();
+    assert_eq!(out.color, eager.color);
+    lazy.denoise(&with_cov, None, &mut |_| true).unwrap();
+    assert_eq!(loaded(&lazy), ["full"], "loaded once");
+    let out = lazy.denoise(&synthetic_frame(40, 36, false), None, &mut |_| true).unwrap();
+    assert_eq!((out.variant, loaded(&lazy)), (Variant::Nocov, ["full", "nocov", "nocov"].map(String::from).to_vec()));
+    let err = lazy.denoise(&with_cov, Variant::parse("oidn"), &mut |_| true).err().unwrap().to_string();
+    assert!(err.contains("no `oidn` model is loaded (loaded: full, lin2020, nocov)"), "{err}");
+
+    // A variant whose file is not a model: the eager load refuses the set, the on-demand one
+    // serves the others and names the broken file when that variant is asked for.
+    std::fs::write(dir.path().join("lin2020/diffuse.onnx"), b"not an onnx file").unwrap();
+    let eager_err = load_error(dir.path());
+    assert!(eager_err.contains("lin2020"), "{eager_err}");
+    let mut lazy = Engine::load(&config).unwrap();
+    assert_eq!(lazy.denoise(&with_cov, None, &mut |_| true).unwrap().variant, Variant::Full);
+    let err = lazy.denoise(&with_cov, Some(lin2020), &mut |_| true).err().unwrap().to_string();
+    assert!(err.contains("lin2020") && err.contains("diffuse.onnx"), "{err}");
+    let again = lazy.denoise(&with_cov, Some(lin2020), &mut |_| true).err().unwrap().to_string();
+    assert_eq!(again, err, "asked again, the same error");
 }
 
 #[test]

@@ -86,6 +86,21 @@ pub struct EngineConfig {
     pub io_binding: IoBinding,
     /// Whether the albedo is prefiltered by its variance ([`albedo`]; `on` unless turned off).
     pub albedo_prefilter: AlbedoPrefilter,
+    /// When the variants' networks are loaded ([`ModelLoading`]; `eager` unless asked).
+    pub loading: ModelLoading,
+}
+
+/// When [`Engine::load`] loads the variants' networks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ModelLoading {
+    /// All of them at once, so that a broken model stops the load and every variant is
+    /// ready for the first job (the daemon).
+    #[default]
+    Eager,
+    /// Each when a frame first needs it: the variants are found (and their directories
+    /// checked) at load, their networks created on first use. A one-frame run then pays for
+    /// the sessions of the variant it uses only.
+    OnDemand,
 }
 
 impl EngineConfig {
@@ -102,6 +117,7 @@ impl EngineConfig {
             precision: Precision::Auto,
             io_binding: IoBinding::Auto,
             albedo_prefilter: AlbedoPrefilter::On,
+            loading: ModelLoading::Eager,
         }
     }
 }
@@ -198,6 +214,12 @@ impl FireflyReport {
 /// Loaded models plus the tiling and threading settings.
 pub struct Engine {
     models: Vec<VariantModel>,
+    /// Variants found but not loaded yet ([`ModelLoading::OnDemand`]).
+    unloaded: Vec<model::VariantDir>,
+    /// Time spent loading variants on first use.
+    loaded_on_demand: Duration,
+    env: &'static ort::environment::Environment,
+    placement: model::Placement,
     tile: usize,
     tile_v2: usize,
     region_pixels: usize,
@@ -207,7 +229,8 @@ pub struct Engine {
 }
 
 impl Engine {
-    /// Loads the ONNX Runtime library and every variant under `config.models_dir`.
+    /// Loads the ONNX Runtime library and every variant under `config.models_dir` (or finds
+    /// them, to be loaded on first use: [`ModelLoading`]).
     pub fn load(config: &EngineConfig) -> Result<Engine, EngineError> {
         let env = runtime::environment(config.ort_library.as_deref()).map_err(EngineError::Runtime)?;
         let threads = config.threads.max(1);
@@ -220,7 +243,10 @@ impl Engine {
             precision: config.precision,
             io_binding: config.io_binding,
         };
-        let models = model::load_models(env, &config.models_dir, placement)?;
+        let (models, unloaded) = match config.loading {
+            ModelLoading::Eager => (model::load_models(env, &config.models_dir, placement)?, Vec::new()),
+            ModelLoading::OnDemand => (Vec::new(), model::find_variants(&config.models_dir)?),
+        };
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
             .thread_name(|i| format!("mcdenoise-engine-{i}"))
@@ -228,6 +254,10 @@ impl Engine {
             .map_err(|e| EngineError::Runtime(format!("cannot start the engine's thread pool: {e}")))?;
         Ok(Engine {
             models,
+            unloaded,
+            loaded_on_demand: Duration::ZERO,
+            env,
+            placement,
             tile: config.tile,
             tile_v2: config.tile_v2,
             region_pixels: config.region_pixels,
@@ -247,8 +277,38 @@ impl Engine {
         self.models.iter().flat_map(VariantModel::infos).collect()
     }
 
+    /// The variants the engine serves (loaded or to be loaded on first use), in name order.
     pub fn variants(&self) -> Vec<Variant> {
-        self.models.iter().map(|m| m.variant).collect()
+        let mut all: Vec<Variant> =
+            self.models.iter().map(|m| m.variant).chain(self.unloaded.iter().map(|u| u.variant)).collect();
+        all.sort_by(|a, b| a.name().cmp(b.name()));
+        all
+    }
+
+    /// Loads `variant`'s networks if it is one found but not loaded yet; an error naming the
+    /// variants there are if it is neither.
+    fn ensure_loaded(&mut self, variant: Variant) -> Result<(), EngineError> {
+        if self.models.iter().any(|m| m.variant == variant) {
+            return Ok(());
+        }
+        let Some(i) = self.unloaded.iter().position(|u| u.variant == variant) else {
+            return Err(EngineError::NoModel(format!(
+                "no `{variant}` model is loaded (loaded: {})",
+                self.loaded_names()
+            )));
+        };
+        // A variant that fails to load stays unloaded: asked for again, it names its error again.
+        let t = Instant::now();
+        let model = model::load_variant(self.env, &self.unloaded[i], self.placement)?;
+        self.unloaded.remove(i);
+        self.models.push(model);
+        self.loaded_on_demand += t.elapsed();
+        Ok(())
+    }
+
+    /// Time spent so far loading variants on first use ([`ModelLoading::OnDemand`]).
+    pub fn loaded_on_demand(&self) -> Duration {
+        self.loaded_on_demand
     }
 
     /// FLOPs per pixel of a variant's networks (both components).
@@ -260,7 +320,7 @@ impl Engine {
     /// ([`Frame::beauty_only`]) and `beauty` is loaded, `full` when it has covariance and
     /// `full` is loaded, else `nocov`.
     pub fn select(&self, frame: &Frame) -> Result<Variant, EngineError> {
-        let has = |v: Variant| self.models.iter().any(|m| m.variant == v);
+        let has = |v: Variant| self.variants().contains(&v);
         if frame.beauty_only && has(Variant::Beauty) {
             Ok(Variant::Beauty)
         } else if frame.has(Buffer::Covariance) && has(Variant::Full) {
@@ -281,7 +341,7 @@ impl Engine {
     }
 
     fn loaded_names(&self) -> String {
-        self.models.iter().map(|m| m.variant.name()).collect::<Vec<_>>().join(", ")
+        self.variants().iter().map(|v| v.name()).collect::<Vec<_>>().join(", ")
     }
 
     /// Runs each loaded variant once on a small frame, so that the first real job does not
@@ -328,6 +388,7 @@ impl Engine {
         let frame = prepared.as_ref().unwrap_or(frame);
         timings.preprocess += t.elapsed();
 
+        self.ensure_loaded(variant)?;
         let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], self.region_pixels, variant, frame)?;
         let stats = FrameStats::of(frame);
         let tiles = plan.cores(frame.width, frame.height);
@@ -372,6 +433,7 @@ impl Engine {
     /// `frame` (preprocessing done beforehand and not counted, logits not consumed): the
     /// inference floor the speed benchmark compares the engine with.
     pub fn inference_only(&mut self, frame: &Frame, variant: Variant) -> Result<Duration, EngineError> {
+        self.ensure_loaded(variant)?;
         let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], self.region_pixels, variant, frame)?;
         let stats = FrameStats::of(frame);
         let mut timings = StageTimings::default();
@@ -481,9 +543,9 @@ pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, F
     (Some(out), report)
 }
 
-/// The loaded model of `variant`, checked against the frame's channels, and its tiling for
-/// tiles of side `tiles[0]` (contract v1) or `tiles[1]` (contract v2), regions of at most
-/// `region_pixels`.
+/// The loaded model of `variant` ([`Engine::ensure_loaded`]), checked against the frame's
+/// channels, and its tiling for tiles of side `tiles[0]` (contract v1) or `tiles[1]`
+/// (contract v2), regions of at most `region_pixels`.
 fn plan<'a>(
     models: &'a mut [VariantModel],
     tiles: [usize; 2],
@@ -491,11 +553,10 @@ fn plan<'a>(
     variant: Variant,
     frame: &Frame,
 ) -> Result<(&'a mut VariantModel, Tiling), EngineError> {
-    let loaded = models.iter().map(|m| m.variant.name()).collect::<Vec<_>>().join(", ");
     let model = models
         .iter_mut()
         .find(|m| m.variant == variant)
-        .ok_or_else(|| EngineError::NoModel(format!("no `{variant}` model is loaded (loaded: {loaded})")))?;
+        .ok_or_else(|| EngineError::NoModel(format!("no `{variant}` model is loaded")))?;
     if model.features.uses_covariance() && !frame.has(Buffer::Covariance) {
         return Err(EngineError::NoModel(format!("the `{variant}` model needs a `covariance` channel")));
     }

@@ -700,33 +700,53 @@ impl VariantModel {
 }
 
 /// Loads the variant in `dir` (named after it), or `None` when `dir` holds no model file.
-fn load_variant(
+/// A subdirectory of the models directory that holds a variant's model files, found but
+/// not loaded.
+#[derive(Clone, Debug)]
+pub struct VariantDir {
+    pub variant: Variant,
+    pub dir: PathBuf,
+}
+
+impl VariantDir {
+    /// The variant in `dir`, if `dir` holds a model (`model.onnx`, or `diffuse.onnx` and
+    /// `specular.onnx`); an error for a directory whose name is not a variant's, or that
+    /// holds both contracts' files.
+    fn find(dir: &Path) -> Result<Option<VariantDir>, EngineError> {
+        let has_v2 = dir.join("model.onnx").exists();
+        let has_v1 = Component::ALL.iter().any(|c| dir.join(format!("{}.onnx", c.name())).exists());
+        if !has_v2 && !has_v1 {
+            return Ok(None);
+        }
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let variant = Variant::parse(&name).ok_or_else(|| {
+            model_error(
+                dir,
+                format!(
+                    "`{name}` is not a valid variant name (at most {} ASCII letters, digits, `_`, `-`, `.`)",
+                    Variant::MAX_LEN
+                ),
+            )
+        })?;
+        if has_v2 && has_v1 {
+            return Err(model_error(
+                dir,
+                "holds both model.onnx (contract 2) and diffuse.onnx/specular.onnx (contract 1); keep one",
+            ));
+        }
+        Ok(Some(VariantDir { variant, dir: dir.to_path_buf() }))
+    }
+}
+
+/// Loads the model of a variant found by [`find_variants`].
+pub fn load_variant(
     env: &ort::environment::Environment,
-    dir: &Path,
+    found: &VariantDir,
     placement: Placement,
-) -> Result<Option<VariantModel>, EngineError> {
+) -> Result<VariantModel, EngineError> {
+    let (variant, dir) = (found.variant, found.dir.as_path());
     let v2 = dir.join("model.onnx");
     let v1 = Component::ALL.map(|c| dir.join(format!("{}.onnx", c.name())));
-    let has_v1 = v1.iter().any(|p| p.exists());
-    if !v2.exists() && !has_v1 {
-        return Ok(None);
-    }
-    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let variant = Variant::parse(&name).ok_or_else(|| {
-        model_error(
-            dir,
-            format!(
-                "`{name}` is not a valid variant name (at most {} ASCII letters, digits, `_`, `-`, `.`)",
-                Variant::MAX_LEN
-            ),
-        )
-    })?;
-    if v2.exists() && has_v1 {
-        return Err(model_error(
-            dir,
-            "holds both model.onnx (contract 2) and diffuse.onnx/specular.onnx (contract 1); keep one",
-        ));
-    }
     if v2.exists() {
         let (recon, half) = (dir.join(RECON_FILE), dir.join(RECON_FP16_FILE));
         let on_gpu = matches!(placement.device, Device::Cuda(_));
@@ -802,7 +822,7 @@ fn load_variant(
                 ),
             ));
         }
-        return Ok(Some(VariantModel { variant, features: net.info.features, networks: Networks::MultiScale(net) }));
+        return Ok(VariantModel { variant, features: net.info.features, networks: Networks::MultiScale(net) });
     }
     let [d, s] = &v1;
     let diffuse = Network::load(env, d, variant, Component::Diffuse, placement)?;
@@ -817,16 +837,22 @@ fn load_variant(
             ),
         ));
     }
-    Ok(Some(VariantModel { variant, features: diffuse.info.features, networks: Networks::Pair { diffuse, specular } }))
+    Ok(VariantModel { variant, features: diffuse.info.features, networks: Networks::Pair { diffuse, specular } })
 }
 
-/// Loads every variant under `dir`: each subdirectory holding a model (`model.onnx`, or
-/// `diffuse.onnx` and `specular.onnx`), in name order.
+/// Loads every variant under `dir` ([`find_variants`]), in name order.
 pub fn load_models(
     env: &ort::environment::Environment,
     dir: &Path,
     placement: Placement,
 ) -> Result<Vec<VariantModel>, EngineError> {
+    find_variants(dir)?.iter().map(|found| load_variant(env, found, placement)).collect()
+}
+
+/// The variants under `dir`: each subdirectory holding a model (`model.onnx`, or
+/// `diffuse.onnx` and `specular.onnx`), in name order; an error naming what was expected
+/// where there is none.
+pub fn find_variants(dir: &Path) -> Result<Vec<VariantDir>, EngineError> {
     let mut dirs: Vec<PathBuf> = match std::fs::read_dir(dir) {
         Ok(entries) => entries
             .filter_map(Result::ok)
@@ -837,13 +863,11 @@ pub fn load_models(
         Err(e) => return Err(model_error(dir, format!("cannot list the directory: {e}"))),
     };
     dirs.sort();
-    let mut models = Vec::new();
+    let mut found = Vec::new();
     for d in dirs {
-        if let Some(m) = load_variant(env, &d, placement)? {
-            models.push(m);
-        }
+        found.extend(VariantDir::find(&d)?);
     }
-    if models.is_empty() {
+    if found.is_empty() {
         // A relative path is resolved against the current directory: say which one.
         let resolved = match std::path::absolute(dir) {
             Ok(abs) if abs != dir => format!(" ({} from the current directory)", abs.display()),
@@ -858,5 +882,5 @@ pub fn load_models(
             ),
         ));
     }
-    Ok(models)
+    Ok(found)
 }
