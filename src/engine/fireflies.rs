@@ -176,21 +176,7 @@ pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<
     if !settings.enabled() || w == 0 || h == 0 {
         return Vec::new();
     }
-    let n = w * h;
-    // Luminance in the network's domain, finite.
-    let g: Vec<f32> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let c = |k: usize| {
-                let v = layer.color[k][i].max(0.0);
-                match layer.albedo {
-                    Some(a) => v / (a[k].get(i).max(0.0) + EPS),
-                    None => v,
-                }
-            };
-            finite(luminance(finite(c(0)), finite(c(1)), finite(c(2))))
-        })
-        .collect();
+    let g = network_luminance(layer, w, h);
     let delta = {
         let mut positive: Vec<f32> = g.par_iter().copied().filter(|v| *v > 0.0).collect();
         if positive.is_empty() {
@@ -208,6 +194,40 @@ pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<
             (0..w).filter_map(move |x| examine(layer, g, w, h, x, y, delta, strength))
         })
         .collect()
+}
+
+/// The luminance of each pixel in the network's domain (the color divided by `albedo + ε`
+/// where the layer has an albedo), finite. A row at a time, on slices, so that it
+/// vectorises: per sample through the albedo plane's type it was three quarters of the
+/// stage's time.
+fn network_luminance(layer: Layer<'_>, w: usize, h: usize) -> Vec<f32> {
+    let mut g = vec![0f32; w * h];
+    g.par_chunks_mut(w).enumerate().for_each_init(
+        || [(); 4].map(|_| vec![0f32; w]),
+        |[r, gr, b, albedo], (y, out)| {
+            let start = y * w;
+            for (k, values) in [&mut *r, &mut *gr, &mut *b].into_iter().enumerate() {
+                let color = &layer.color[k][start..][..w];
+                match layer.albedo {
+                    Some(a) => {
+                        a[k].read(start, albedo);
+                        for ((v, c), a) in values.iter_mut().zip(color).zip(albedo.iter()) {
+                            *v = finite(c.max(0.0) / (a.max(0.0) + EPS));
+                        }
+                    }
+                    None => {
+                        for (v, c) in values.iter_mut().zip(color) {
+                            *v = finite(c.max(0.0));
+                        }
+                    }
+                }
+            }
+            for (((o, r), g), b) in out.iter_mut().zip(r.iter()).zip(gr.iter()).zip(b.iter()) {
+                *o = finite(luminance(*r, *g, *b));
+            }
+        },
+    );
+    g
 }
 
 /// The fix of pixel (x, y), if it is an outlier.
