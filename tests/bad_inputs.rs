@@ -1003,7 +1003,7 @@ fn check_no_leftovers(data_dir: &Path, listed: &BTreeSet<String>, accepted: &BTr
     }
     for entry in std::fs::read_dir(data_dir.join("jobs")).unwrap().flatten() {
         let name = entry.file_name().to_string_lossy().to_string();
-        if name.starts_with(".health-probe") {
+        if name.starts_with(mcdenoise::jobs::HEALTH_PROBE) {
             // The storage health check's own probe, written and removed on a blocking thread
             // that may still be finishing as the daemon stops.
             continue;

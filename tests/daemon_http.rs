@@ -332,7 +332,7 @@ async fn each_bad_input_gets_its_own_error_while_other_jobs_complete() {
     let leftovers: Vec<_> = std::fs::read_dir(dir.path().join("jobs"))
         .unwrap()
         .flatten()
-        .filter(|e| !e.file_name().to_string_lossy().starts_with(".health-probe"))
+        .filter(|e| !e.file_name().to_string_lossy().starts_with(mcdenoise::jobs::HEALTH_PROBE))
         .map(|e| e.file_name())
         .collect();
     assert_eq!(leftovers.len(), 3, "refused uploads leave no files: {leftovers:?}");

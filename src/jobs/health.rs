@@ -21,6 +21,11 @@ use serde::Serialize;
 use super::JobService;
 use crate::error::Error;
 
+/// The file the storage check writes and removes in `jobs/` to see that the data directory
+/// takes writes (its atomic write's temporary file starts with the same name). Whoever
+/// lists `jobs/` may find either there for a moment.
+pub const HEALTH_PROBE: &str = ".health-probe";
+
 /// Why the data directory cannot take writes now.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize)]
 pub struct StorageProblem {
@@ -85,7 +90,7 @@ pub(super) fn check(root: &Path, opened: (u64, u64), min_free: u64) -> (Option<S
             format!("{free} bytes free on the file system of {}, below --min-free-bytes {min_free}", root.display());
         return (Some(StorageProblem { kind: "full", reason }), Some(free));
     }
-    let probe: PathBuf = root.join("jobs").join(".health-probe");
+    let probe: PathBuf = root.join("jobs").join(HEALTH_PROBE);
     let written = crate::atomic::write(&probe, b"ok").and_then(|()| std::fs::remove_file(&probe));
     if let Err(e) = written {
         let _ = std::fs::remove_file(crate::atomic::part_path(&probe));

@@ -85,7 +85,7 @@ use crate::error::{Error, Result};
 use crate::frame::Limits;
 use crate::telemetry::Telemetry;
 pub use admission::{Admission, Slot};
-pub use health::StorageProblem;
+pub use health::{StorageProblem, HEALTH_PROBE};
 pub use previews::PreviewImage;
 pub use queries::{ListFilter, Stats, Throughput, STATS_WINDOW_MS};
 use queue::Queue;

@@ -95,8 +95,9 @@ def sigkill(d: Daemon):
 
 
 def files_under(root: Path) -> set[str]:
-    """The files under root, less the storage health check's probe (written and removed
-    every few seconds in jobs/, and left behind when a kill lands mid-check)."""
+    """The files under root, less the storage health check's probe (`HEALTH_PROBE` in
+    src/jobs/health.rs: written and removed every few seconds in jobs/, and left behind
+    when a kill lands mid-check)."""
     return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() and not p.name.startswith(".health-probe")}
 
 
