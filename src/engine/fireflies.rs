@@ -48,7 +48,7 @@
 
 use rayon::prelude::*;
 
-use super::preprocess::{luminance, EPS};
+use super::preprocess::{luminance, luminance_rows, EPS};
 use crate::frame::{Plane, PlaneRef};
 
 /// Whether outliers are handled.
@@ -197,36 +197,27 @@ pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<
 }
 
 /// The luminance of each pixel in the network's domain (the color divided by `albedo + ε`
-/// where the layer has an albedo), finite. A row at a time, on slices, so that it
-/// vectorises: per sample through the albedo plane's type it was three quarters of the
-/// stage's time.
+/// where the layer has an albedo), finite; a row at a time ([`luminance_rows`]): per sample
+/// through the albedo plane's type it was three quarters of the stage's time.
 fn network_luminance(layer: Layer<'_>, w: usize, h: usize) -> Vec<f32> {
     let mut g = vec![0f32; w * h];
-    g.par_chunks_mut(w).enumerate().for_each_init(
-        || [(); 4].map(|_| vec![0f32; w]),
-        |[r, gr, b, albedo], (y, out)| {
-            let start = y * w;
-            for (k, values) in [&mut *r, &mut *gr, &mut *b].into_iter().enumerate() {
-                let color = &layer.color[k][start..][..w];
-                match layer.albedo {
-                    Some(a) => {
-                        a[k].read(start, albedo);
-                        for ((v, c), a) in values.iter_mut().zip(color).zip(albedo.iter()) {
-                            *v = finite(c.max(0.0) / (a.max(0.0) + EPS));
-                        }
-                    }
-                    None => {
-                        for (v, c) in values.iter_mut().zip(color) {
-                            *v = finite(c.max(0.0));
-                        }
-                    }
+    let channel = |k: usize, start: usize, values: &mut [f32], albedo: &mut [f32]| {
+        let color = &layer.color[k][start..][..w];
+        match layer.albedo {
+            Some(a) => {
+                a[k].read(start, albedo);
+                for ((v, c), a) in values.iter_mut().zip(color).zip(albedo.iter()) {
+                    *v = finite(c.max(0.0) / (a.max(0.0) + EPS));
                 }
             }
-            for (((o, r), g), b) in out.iter_mut().zip(r.iter()).zip(gr.iter()).zip(b.iter()) {
-                *o = finite(luminance(*r, *g, *b));
+            None => {
+                for (v, c) in values.iter_mut().zip(color) {
+                    *v = finite(c.max(0.0));
+                }
             }
-        },
-    );
+        }
+    };
+    luminance_rows(&mut g, w, |y| y * w, channel, finite);
     g
 }
 

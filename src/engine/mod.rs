@@ -285,6 +285,11 @@ impl Engine {
         all
     }
 
+    /// Whether `variant` is loaded or found to be loaded on first use.
+    fn serves(&self, variant: Variant) -> bool {
+        self.models.iter().any(|m| m.variant == variant) || self.unloaded.iter().any(|u| u.variant == variant)
+    }
+
     /// Loads `variant`'s networks if it is one found but not loaded yet; an error naming the
     /// variants there are if it is neither.
     fn ensure_loaded(&mut self, variant: Variant) -> Result<(), EngineError> {
@@ -320,7 +325,7 @@ impl Engine {
     /// ([`Frame::beauty_only`]) and `beauty` is loaded, `full` when it has covariance and
     /// `full` is loaded, else `nocov`.
     pub fn select(&self, frame: &Frame) -> Result<Variant, EngineError> {
-        let has = |v: Variant| self.variants().contains(&v);
+        let has = |v: Variant| self.serves(v);
         if frame.beauty_only && has(Variant::Beauty) {
             Ok(Variant::Beauty)
         } else if frame.has(Buffer::Covariance) && has(Variant::Full) {

@@ -699,7 +699,6 @@ impl VariantModel {
     }
 }
 
-/// Loads the variant in `dir` (named after it), or `None` when `dir` holds no model file.
 /// A subdirectory of the models directory that holds a variant's model files, found but
 /// not loaded.
 #[derive(Clone, Debug)]

@@ -243,11 +243,8 @@ fn color_layout(t: &mut [f32], n: usize) -> [&mut [f32]; 4] {
     [base, var, gx, gy]
 }
 
-/// Fills `out` (the rect's pixels, row-major) with the saturated luminance, times `scale`,
-/// of a three-channel variance. `channel(c, start, row, scratch)` writes channel `c` of the
-/// `row.len()` pixels from frame index `start` into `row` (`scratch` is a row of its own
-/// for a second plane). A row at a time, so that the arithmetic runs on slices and
-/// vectorises, where reading each sample through its plane's type would not.
+/// [`luminance_rows`] of a three-channel variance over the rect's pixels, times `scale`
+/// and saturated.
 fn variance_luminance(
     frame: &Frame,
     rect: Rect,
@@ -255,15 +252,30 @@ fn variance_luminance(
     scale: f32,
     channel: impl Fn(usize, usize, &mut [f32], &mut [f32]) + Sync,
 ) {
-    out.par_chunks_mut(rect.w).enumerate().for_each_init(
-        || [(); 4].map(|_| vec![0f32; rect.w]),
-        |[r, g, b, scratch], (row, out)| {
-            let start = (rect.y + row) * frame.width + rect.x;
+    let start = |row: usize| (rect.y + row) * frame.width + rect.x;
+    luminance_rows(out, rect.w, start, channel, |l| bounded(l * scale));
+}
+
+/// Fills `out`, rows of `w` pixels, with `finish` of the luminance of three channels, a row
+/// at a time: `channel(c, start, row, scratch)` writes channel `c` of the row's pixels,
+/// which begin at frame index `start(y)` for row `y`, into `row` (`scratch` is a row of its
+/// own for a second plane). On slices, so that the arithmetic vectorises, where reading
+/// each sample through its plane's type would not. Parallel over rows.
+pub(super) fn luminance_rows(
+    out: &mut [f32],
+    w: usize,
+    start: impl Fn(usize) -> usize + Sync,
+    channel: impl Fn(usize, usize, &mut [f32], &mut [f32]) + Sync,
+    finish: impl Fn(f32) -> f32 + Sync,
+) {
+    out.par_chunks_mut(w).enumerate().for_each_init(
+        || [(); 4].map(|_| vec![0f32; w]),
+        |[r, g, b, scratch], (y, out)| {
             for (c, values) in [&mut *r, &mut *g, &mut *b].into_iter().enumerate() {
-                channel(c, start, values, scratch);
+                channel(c, start(y), values, scratch);
             }
             for (((o, r), g), b) in out.iter_mut().zip(r.iter()).zip(g.iter()).zip(b.iter()) {
-                *o = bounded(luminance(*r, *g, *b) * scale);
+                *o = finish(luminance(*r, *g, *b));
             }
         },
     );

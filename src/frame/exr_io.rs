@@ -111,6 +111,7 @@ fn check_chunks(mut input: impl Read + Seek) -> std::result::Result<(), FrameErr
     let io = |e: std::io::Error| map_exr_error(e.into());
     let mut offsets: Vec<u64> = tables.into_iter().flatten().collect();
     offsets.sort_unstable();
+    let multipart = meta.requirements.is_multilayer();
     let mut seen = std::collections::HashSet::new();
     // Where the input is: unknown until the first seek.
     let mut at: Option<u64> = None;
@@ -132,7 +133,7 @@ fn check_chunks(mut input: impl Read + Seek) -> std::result::Result<(), FrameErr
             input.read_exact(&mut bytes).map_err(io)?;
             Ok(i32::from_le_bytes(bytes))
         };
-        let part = if meta.requirements.is_multilayer() { word()? } else { 0 };
+        let part = if multipart { word()? } else { 0 };
         let header = usize::try_from(part).ok().and_then(|p| meta.headers.get(p)).ok_or_else(|| {
             FrameError::Corrupt(format!("a chunk names part {part}, but the file has {}", meta.headers.len()))
         })?;
@@ -149,7 +150,7 @@ fn check_chunks(mut input: impl Read + Seek) -> std::result::Result<(), FrameErr
                 ((x, y, lx, ly), format!("tile ({x}, {y}) of level ({lx}, {ly})"), 16)
             }
         };
-        at = Some(offset + read + if meta.requirements.is_multilayer() { 4 } else { 0 });
+        at = Some(offset + read + if multipart { 4 } else { 0 });
         if !seen.insert((part, block)) {
             return Err(FrameError::Corrupt(format!(
                 "two chunks of part {part} hold the {what}, so another block has no data (corrupt offset table)"
