@@ -334,6 +334,26 @@ def validate(net: MSNet, val: FrameSet, zero_cov: bool = False, beauty: bool = F
     return v
 
 
+def scored(net, val: FrameSet, a) -> dict:
+    """The validation row of `net`: its scores, and those without covariance (`nocov`)."""
+    v = validate(net, val, beauty=a.beauty)
+    if not a.beauty:
+        v["nocov"] = validate(net, val, zero_cov=True)
+    return v
+
+
+def baseline(net: MSNet, val: FrameSet, a, out: Path) -> float:
+    """Scores the network a fine-tune starts from (`--init`) as step 0 of val.jsonl and keeps
+    it as best.pt; returns its score, the one later checkpoints must beat."""
+    v = scored(net, val, a)
+    v.update(step=0, time=0.0, init=str(a.init))
+    append_jsonl(out / "val.jsonl", v)
+    print(f"validation of {a.init} (the start): RelMSE {v['relmse']:.5f} DSSIM {v['dssim']:.4f}",
+          file=sys.stderr, flush=True)
+    save_msnet(out / "best.pt", net, step=0, val=v)
+    return v["score"]
+
+
 @torch.no_grad()
 def kernel_peak(net: Lin2020Pair, raw: torch.Tensor, maxima: torch.Tensor) -> float:
     """The mean over pixels and both components of a frame of the largest weight of each
@@ -535,6 +555,10 @@ def main(argv=None) -> int:
         print(f"resumed at step {step}", file=sys.stderr)
     (out / "config.json").write_text(json.dumps(vars(a), indent=2))
     print(f"training: {net.description()}; {net.flops_per_pixel() / 1e6:.3f} MFLOP/px", file=sys.stderr, flush=True)
+    if a.init and not a.reshape and not isinstance(net, Lin2020Pair) and step == 0 and len(val):
+        # A fine-tune starts from a trained network: that network, scored on the same
+        # validation frames, is the one to beat, so best.pt is never worse than the start.
+        best = baseline(net, val, a, out)
     log = open_append(out / "log.jsonl")
     t0 = time.time() - elapsed
     g = torch.Generator().manual_seed(a.seed * 1_000_003 + step)
@@ -590,9 +614,7 @@ def main(argv=None) -> int:
                 print(f"step {step}/{a.steps} loss {row['loss']:.4f} {row['time']:.0f}s", file=sys.stderr, flush=True)
         stop = a.time_limit is not None and time.time() - t_run > a.time_limit
         if step % a.val_every == 0 or step == a.steps or stop:
-            v = validate(net, val, beauty=a.beauty) if len(val) else {"score": float(loss), "relmse": float("nan")}
-            if len(val) and not a.beauty:
-                v["nocov"] = validate(net, val, zero_cov=True)
+            v = scored(net, val, a) if len(val) else {"score": float(loss.detach()), "relmse": float("nan")}
             v.update(step=step, time=time.time() - t0)
             append_jsonl(out / "val.jsonl", v)
             peak = f", largest kernel weight {v['kernel_peak']:.3f}" if "kernel_peak" in v else ""

@@ -185,7 +185,13 @@ def test_training_steps_resume_and_export(tmp_path):
     tuned = tmp_path / "tuned"
     assert train_ms.main(["--data", str(root), "--out", str(tuned), "--steps", "2", *small, "--enc", "9,9,9,9",
                           "--init", str(out / "best.pt"), "--ssim", "0.5"]) == 0
-    assert [json.loads(l)["step"] for l in open(tuned / "val.jsonl")] == [2]
+    # The network it starts from is scored first, on the same frames (step 0), and best.pt
+    # holds it until a later step scores better: a fine-tune never keeps a worse network.
+    rows = [json.loads(l) for l in open(tuned / "val.jsonl")]
+    assert [r["step"] for r in rows] == [0, 2] and rows[0]["init"] == str(out / "best.pt")
+    start = min(v["score"] for v in val)  # the --init checkpoint is the run's best
+    assert rows[0]["score"] == pytest.approx(start, rel=1e-5)
+    assert load_msnet(tuned / "best.pt")[1]["step"] == (2 if rows[1]["score"] < rows[0]["score"] else 0)
     cfg = json.loads((tuned / "config.json").read_text())
     assert cfg["enc"] == "6,6,8,8" and cfg["ssim"] == 0.5
     # --reshape trains the shape the options give from the checkpoint's weights where they fit.
