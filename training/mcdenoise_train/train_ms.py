@@ -50,7 +50,7 @@ import torch
 from torch import nn
 
 from . import losses
-from .checkpoint import load_checkpoint, load_state, save_checkpoint, save_msnet, save_state
+from .checkpoint import load_checkpoint, load_msnet, load_state, save_checkpoint, save_msnet, save_state
 from .contract import FEATURES_FULL, NOCOV_INDICES
 from .data import manifest_frames
 from .exr import read_exr
@@ -495,15 +495,11 @@ def main(argv=None) -> int:
         net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
         a.cov_dropout = 0.0  # the paper's network always has covariance
     elif a.init and a.reshape:
-        from .checkpoint import load_msnet
-
         net = from_arguments(a, len(FEATURES_FULL))
         for note in transplant(load_msnet(a.init)[0], net):
             print(f"--reshape: {note}", file=sys.stderr)
         net.train()
     elif a.init:
-        from .checkpoint import load_msnet
-
         net = load_msnet(a.init)[0].train()
         for k, v in net.config.items():  # the run's config shows the shape it trained
             if k in ("enc", "dec"):
@@ -516,8 +512,6 @@ def main(argv=None) -> int:
     opt = torch.optim.Adam(net.parameters(), lr=a.lr)
     teacher = None
     if a.teacher:
-        from .checkpoint import load_msnet
-
         teacher = load_msnet(a.teacher)[0].to(dev).to(memory_format=torch.channels_last).eval()
         teacher.requires_grad_(False)
         print(f"distilling from {a.teacher} ({teacher.flops_per_pixel() / 1e6:.3f} MFLOP/px), weight {a.distill}",
@@ -553,6 +547,12 @@ def main(argv=None) -> int:
             a.steps, a.time_budget, fitted = st["steps"], None, True
         sched = schedule(a.steps, done=step)
         print(f"resumed at step {step}", file=sys.stderr)
+        if st.get("val_names") not in (None, list(val.names)) and isinstance(net, MSNet) and (out / "best.pt").exists():
+            # The validation scenes changed since (a data set rendered between the runs):
+            # a score on other frames does not compare, so best.pt is scored on these.
+            best = scored(load_msnet(out / "best.pt")[0].to(dev), val, a)["score"]
+            print(f"validation frames changed ({len(st['val_names'])} -> {len(val)}): best.pt scored "
+                  f"again on them, {best:.3f}", file=sys.stderr, flush=True)
     (out / "config.json").write_text(json.dumps(vars(a), indent=2))
     print(f"training: {net.description()}; {net.flops_per_pixel() / 1e6:.3f} MFLOP/px", file=sys.stderr, flush=True)
     if a.init and not a.reshape and not isinstance(net, Lin2020Pair) and step == 0 and len(val):
@@ -565,7 +565,7 @@ def main(argv=None) -> int:
 
     def save_resume():
         save_state(state_path, model=net.state_dict(), opt=opt.state_dict(), fitted=fitted,
-                   step=step, steps=a.steps, best=best, elapsed=time.time() - t0)
+                   step=step, steps=a.steps, best=best, elapsed=time.time() - t0, val_names=list(val.names))
 
     stop = False
     t_fit = t_run = t_reload = time.time()

@@ -214,6 +214,28 @@ def test_training_steps_resume_and_export(tmp_path):
                        "--teacher", str(out / "best.pt"), "--distill", "1.5"])
 
 
+def test_resume_scores_best_again_when_the_validation_frames_changed(tmp_path, capsys):
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    out = tmp_path / "run"
+    small = ["--data", str(root), "--out", str(out), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8",
+             "--patch", "32", "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "2"]
+    assert train_ms.main([*small, "--steps", "2"]) == 0
+    state = {k: v for k, v in load_state(out / "state.pt").items() if k not in ("format", "version")}
+    assert state["val_names"] == ["s2-spp8"]
+    # The same frames: the saved best stands (an unbeatable one here, so nothing replaces it).
+    save_state(out / "state.pt", **{**state, "best": -1e9})
+    assert train_ms.main([*small, "--steps", "4", "--resume"]) == 0
+    assert load_state(out / "state.pt")["best"] == -1e9
+    # Other frames (a scene rendered between the runs): best.pt is scored again on these.
+    state = {k: v for k, v in load_state(out / "state.pt").items() if k not in ("format", "version")}
+    save_state(out / "state.pt", **{**state, "best": -1e9, "val_names": ["a scene since removed"]})
+    capsys.readouterr()
+    assert train_ms.main([*small, "--steps", "6", "--resume"]) == 0
+    assert "validation frames changed (1 -> 1): best.pt scored again" in capsys.readouterr().err
+    scores = [json.loads(l)["score"] for l in open(out / "val.jsonl")]
+    assert -1e9 < load_state(out / "state.pt")["best"] <= scores[-1] + 1e-9
+
+
 def test_distillation_targets_are_the_teachers_output():
     args = _args(ext_width=4, ext_blocks=1, enc="6,6,8,8", dec="6,6,8,8")
     torch.manual_seed(0)
