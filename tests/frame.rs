@@ -246,6 +246,26 @@ fn reference_needs_only_a_color() {
 }
 
 #[test]
+fn a_renderers_infinitely_far_depth_is_no_hit_in_every_depth_channel() {
+    // Backgrounds written as 1e10 (Blender Cycles) or 1e30, in the canonical channel and in
+    // an alias; a depth just under the bound is a distance and stays.
+    for name in ["depth.Z", "depth"] {
+        let mut planes = named_planes(W, H, false);
+        let depth = planes.iter_mut().find(|(n, _)| n == "depth.Z").unwrap();
+        depth.0 = name.to_string();
+        depth.1[0] = 1e10;
+        depth.1[1] = 1e30;
+        depth.1[2] = 0.99e9;
+        let kept = depth.1.clone();
+        let frame = frame_of(&exr_single(W, H, &planes, Sample::F32));
+        let got = frame.f32_plane(Buffer::Depth, 0);
+        assert_eq!(&got[..3], &[0.0, 0.0, 0.99e9], "{name}");
+        assert_eq!(&got[3..], &kept[3..], "{name}: the other depths as they are");
+        assert_eq!(frame.sanitized.total, 0, "a background distance is not bad input");
+    }
+}
+
+#[test]
 fn cycles_passes_give_the_diffuse_specular_split_and_missing_variances_are_zero() {
     let (bytes, planes) = cycles_frame(W, H, |_| true);
     let frame = frame_of(&bytes);

@@ -11,7 +11,7 @@ pub mod renderers;
 
 pub use carry::{Carried, Carry, FrameHeader, ALPHA};
 pub use exr_io::{read_header, write_exr, write_planes, HeaderInfo, OutputLayer, SampleType, RESULT_ENCODING};
-pub use layout::{Buffer, BUFFER_COUNT};
+pub use layout::{Buffer, BUFFER_COUNT, NO_HIT_DEPTH};
 pub use plane::PlaneRef;
 pub use presets::ChannelMaps;
 
@@ -144,6 +144,10 @@ impl Frame {
                         *v = 0.0;
                         count += 1;
                     }
+                }
+                if buffer == Buffer::Depth {
+                    // A renderer's "infinitely far" is the canonical "no hit".
+                    plane.iter_mut().filter(|v| **v >= NO_HIT_DEPTH).for_each(|v| *v = 0.0);
                 }
                 taken.push(plane);
             }

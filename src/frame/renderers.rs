@@ -20,9 +20,6 @@ use super::{NamedPlanes, Plane};
 pub enum Recipe {
     /// The channel as it is.
     Copy(String),
-    /// Depth where "no hit" is written as a huge distance (Cycles: 1e10): values at or above
-    /// [`NO_HIT_DEPTH`] become 0, the canonical "no hit".
-    Depth(String),
     /// `(sum of terms) × factor`.
     Product { terms: Vec<String>, factor: String },
     /// `total − (sum of terms) × factor`.
@@ -37,7 +34,7 @@ impl Recipe {
     /// The file's channels the recipe reads.
     pub fn sources(&self) -> Vec<&str> {
         match self {
-            Recipe::Copy(src) | Recipe::Depth(src) => vec![src.as_str()],
+            Recipe::Copy(src) => vec![src.as_str()],
             Recipe::Product { terms, factor } => terms.iter().chain([factor]).map(String::as_str).collect(),
             Recipe::Remainder { total, terms, factor } => {
                 [total].into_iter().chain(terms).chain([factor]).map(String::as_str).collect()
@@ -74,9 +71,6 @@ pub fn beauty<'a>(names: &[&'a str]) -> Beauty<'a> {
     let alpha = names.iter().copied().find(|n| *n == "A").or_else(|| combined.and_then(|c| c.get("A").copied()));
     Beauty { color, alpha }
 }
-
-/// Depths at or above this mean "no hit".
-pub const NO_HIT_DEPTH: f32 = 1e9;
 
 /// Cycles pass names, current and before Blender 5 (`DiffDir` ...).
 const DIFFUSE_DIRECT: &[&str] = &["Diffuse Direct", "DiffDir"];
@@ -155,7 +149,9 @@ pub fn recipes(names: &[&str], maps: &ChannelMaps) -> Vec<(String, Recipe)> {
     }
     if !has(super::Buffer::Depth) {
         if let Some(d) = pass(&["Denoising Depth", "Depth"], &["Z"]) {
-            add("depth", &["Z"], d.into_iter().map(Recipe::Depth).collect());
+            // Its background distance, 1e10, becomes "no hit" as every depth's does
+            // (`layout::NO_HIT_DEPTH`).
+            add("depth", &["Z"], d.into_iter().map(Recipe::Copy).collect());
         }
     }
     // Other renderers' AOV names (the channel maps), for what is still missing (not for
@@ -279,7 +275,6 @@ pub fn derive(planes: &mut NamedPlanes, len: usize, maps: &ChannelMaps) {
         .map(|(name, recipe)| {
             let plane = match recipe {
                 Recipe::Copy(src) => get(src).clone(),
-                Recipe::Depth(src) => get(src).iter().map(|&z| if z >= NO_HIT_DEPTH { 0.0 } else { z }).collect(),
                 Recipe::Product { terms, factor } => sum(terms).iter().zip(get(factor)).map(|(s, f)| s * f).collect(),
                 Recipe::Remainder { total, terms, factor } => {
                     let d = sum(terms);

@@ -32,6 +32,9 @@ RAW = (
 RAW_INDEX = {n: i for i, n in enumerate(RAW)}
 DIFFUSE, SPECULAR, ALBEDO, NORMAL = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
 DEPTH, COV = 12, 13
+# Depths at or above this are a renderer's "infinitely far", read as 0 ("no hit"), as the
+# engine does (`NO_HIT_DEPTH` in src/frame/layout.rs).
+NO_HIT_DEPTH = 1e9
 VAR = {"diffuse": 14, "specular": 15, "albedo": 16, "normal": 17, "depth": 18, "covariance": 19}
 
 # Frame channel names (as written by the data generator) of each raw channel.
@@ -126,6 +129,8 @@ def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) 
             src = ch.get("covariance.Y")
         if src is not None:
             out[i] = src
+    # Depth as the engine reads it: non-finite and "infinitely far" samples are "no hit", 0.
+    out[DEPTH] = np.where(np.isfinite(out[DEPTH]) & (out[DEPTH] < NO_HIT_DEPTH), out[DEPTH], 0.0)
     out = np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=0.0)  # half-float files overflow to inf
     if albedo_prefilter:
         a = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]])

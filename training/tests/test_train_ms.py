@@ -27,6 +27,8 @@ BIN = os.environ.get("MCDENOISE_BIN", "")
 def test_preprocessing_matches_the_engine(tmp_path, covariance):
     ch = synthetic_frame(40, 48, seed=3, covariance=covariance)
     ref = {k: v * 0.9 for k, v in ch.items()}
+    # A background written as "infinitely far" (1e10, 1e30): both sides read it as no hit.
+    ch["depth.Z"][0, :5], ch["depth.Z"][1, :3] = 1e10, 1e30
     write_exr(tmp_path / "f.exr", ch)
     write_exr(tmp_path / "r.exr", ref)
     # The firefly stage and the albedo prefilter are the engine's own (off here, tested
