@@ -65,6 +65,16 @@ pub struct Output {
     pub reference_color: Option<Rgb>,
 }
 
+/// What the result says when the frame's radiance was scaled into the networks' range.
+fn exposure_warning(scale: f32) -> String {
+    let top = crate::engine::exposure::LEVEL_MAX;
+    format!(
+        "the frame is brighter than any the networks trained on (exposure level above {top}): its radiance was \
+         scaled by {scale:.4} before the networks and the result back by its inverse (docs/frame-layout.md, \
+         \"Exposure\")"
+    )
+}
+
 /// Which input a failure concerns.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Input {
@@ -244,7 +254,10 @@ pub fn run(
     for (name, value) in attributes(&*denoiser, out.variant) {
         carried.header.set_text(name, &value);
     }
-    let Denoised { width, height, variant, tiles, timings: stages, fireflies, color, components } = out;
+    if out.exposure != 1.0 {
+        warnings.push(exposure_warning(out.exposure));
+    }
+    let Denoised { width, height, variant, tiles, timings: stages, fireflies, color, components, .. } = out;
     let (diffuse, specular) = components.map(|c| (c.diffuse, c.specular)).unzip();
     let mut components = [(Layer::Diffuse, diffuse), (Layer::Specular, specular)];
     let mut denoised: Vec<(String, Vec<f32>)> = rgb_names("").into_iter().zip(color).collect();

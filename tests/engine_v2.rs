@@ -9,7 +9,7 @@ use std::path::Path;
 
 use common::*;
 use mcdenoise::engine::{
-    albedo, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding,
+    albedo, exposure, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding,
     ModelLoading, Options, Outputs, Precision, Reconstruction, Variant,
 };
 use model_dirs::*;
@@ -73,6 +73,38 @@ fn the_output_is_finite_and_the_components_add_up() {
     // Not the noisy input: the kernels filter.
     let noisy = frame.color();
     assert!(max_rel_diff(&out.color[0], &noisy[0]) > 1e-3);
+}
+
+#[test]
+fn frames_brighter_than_the_training_ones_are_scaled_into_their_range_and_back() {
+    let top = exposure::LEVEL_MAX;
+    let base = synthetic_frame(45, 37, true);
+    let level = exposure::level(&base).unwrap();
+    // The same frame in four units: just under the top level and 1000 times darker (both left as
+    // they are), and 100 and 1000 times above the top (both brought down to it, so the same
+    // network inputs).
+    let at = |factor: f64| exposure::apply(&base, factor as f32).unwrap_or_else(|| base.clone());
+    let engine = || engine_at(&tiny_v2(), 32);
+    for factor in [0.99 * top / level, top / level / 1000.0] {
+        assert_eq!(engine().denoise(&at(factor), None, &mut |_| true).unwrap().exposure, 1.0);
+    }
+    let (a, b) = (100.0 * top / level, 1000.0 * top / level);
+    let bright_a = engine().denoise(&at(a), None, &mut |_| true).unwrap();
+    let bright_b = engine().denoise(&at(b), None, &mut |_| true).unwrap();
+    for (out, k) in [(&bright_a, a), (&bright_b, b)] {
+        let reached = f64::from(out.exposure) * k * level;
+        assert!((reached / top - 1.0).abs() < 1e-3, "scaled to level {reached}, not {top}");
+    }
+    for c in 0..3 {
+        let ra: Vec<f32> = bright_a.color[c].iter().map(|v| (f64::from(*v) / a) as f32).collect();
+        let rb: Vec<f32> = bright_b.color[c].iter().map(|v| (f64::from(*v) / b) as f32).collect();
+        let d = max_rel_diff(&ra, &rb);
+        assert!(d <= 1e-4, "color {c}: the two units give results {d} apart");
+        // Not the noisy frame scaled back: the networks filtered it.
+        let noisy = at(a).color();
+        let rn: Vec<f32> = noisy[c].iter().map(|v| (f64::from(*v) / a) as f32).collect();
+        assert!(max_rel_diff(&ra, &rn) > 1e-3);
+    }
 }
 
 #[test]

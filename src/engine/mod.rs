@@ -15,6 +15,7 @@ pub mod albedo;
 mod compress;
 pub mod contract;
 pub mod device;
+pub mod exposure;
 pub mod fireflies;
 pub mod model;
 pub mod multiscale;
@@ -195,6 +196,9 @@ pub struct Denoised {
     pub timings: StageTimings,
     /// What the firefly handling did.
     pub fireflies: FireflyReport,
+    /// The factor the frame's radiance was scaled by before the networks (and the results by
+    /// its inverse after): 1 unless its level was outside the training range ([`exposure`]).
+    pub exposure: f32,
 }
 
 /// Samples (pixel × component) the firefly handling clamped, per component.
@@ -384,6 +388,11 @@ impl Engine {
         };
         let mut timings = StageTimings::default();
         let t = Instant::now();
+        let exposure = exposure::scale_for(self.pool.install(|| exposure::level(frame)));
+        let exposed = self.pool.install(|| exposure::apply(frame, exposure));
+        let frame = exposed.as_ref().unwrap_or(frame);
+        timings.preprocess += t.elapsed();
+        let t = Instant::now();
         let (handled, report) = self.pool.install(|| handle_fireflies(frame, options.fireflies));
         let frame = handled.as_ref().unwrap_or(frame);
         timings.fireflies = t.elapsed();
@@ -418,6 +427,10 @@ impl Engine {
             )?;
             let t = Instant::now();
             self.pool.install(|| finish_core(&mut diffuse, &mut specular, &albedo, *core, w));
+            if exposure != 1.0 {
+                let back = 1.0 / exposure;
+                diffuse.iter_mut().chain(specular.iter_mut()).for_each(|v| *v *= back);
+            }
             if let Some(c) = &mut components {
                 scatter(&diffuse, *core, w, &mut c.diffuse);
                 scatter(&specular, *core, w, &mut c.specular);
@@ -431,7 +444,17 @@ impl Engine {
                 return Err(EngineError::Cancelled);
             }
         }
-        Ok(Denoised { width: w, height: h, variant, color, components, tiles: tiles.len(), timings, fireflies: report })
+        Ok(Denoised {
+            width: w,
+            height: h,
+            variant,
+            color,
+            components,
+            tiles: tiles.len(),
+            timings,
+            fireflies: report,
+            exposure,
+        })
     }
 
     /// Time spent in ONNX Runtime alone on the regions [`Engine::denoise`] would run for

@@ -111,6 +111,7 @@ impl Denoiser for FakeDenoiser {
             tiles,
             timings: Default::default(),
             fireflies: Default::default(),
+            exposure: 1.0,
         })
     }
 }
