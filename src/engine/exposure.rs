@@ -75,7 +75,7 @@ pub fn level(frame: &Frame) -> Option<f64> {
 /// with no lit block.
 pub fn scale_for(level: Option<f64>) -> f32 {
     match level {
-        Some(l) if l > LEVEL_MAX => (LEVEL_MAX / l) as f32,
+        Some(l) if l > LEVEL_MAX => Some((LEVEL_MAX / l) as f32).filter(|s| *s > 0.0).unwrap_or(1.0),
         _ => 1.0,
     }
 }

@@ -428,8 +428,9 @@ impl Engine {
             let t = Instant::now();
             self.pool.install(|| finish_core(&mut diffuse, &mut specular, &albedo, *core, w));
             if exposure != 1.0 {
+                // Saturated as the colour is: a frame of huge values back up may exceed f32.
                 let back = 1.0 / exposure;
-                diffuse.iter_mut().chain(specular.iter_mut()).for_each(|v| *v *= back);
+                diffuse.iter_mut().chain(specular.iter_mut()).for_each(|v| *v = saturate(*v * back));
             }
             if let Some(c) = &mut components {
                 scatter(&diffuse, *core, w, &mut c.diffuse);
