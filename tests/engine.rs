@@ -14,6 +14,10 @@ use mcdenoise::frame::{layout::REQUIRED, Buffer, Frame};
 /// A 3×2 frame with hand-picked values; those of the buffers kept as f16 (every one but the
 /// colors and the depth) are exact in f16, so that the closed forms below hold to f32.
 fn hand_frame() -> Frame {
+    Frame::from_planes(3, 2, hand_planes(), REQUIRED, &Default::default()).unwrap()
+}
+
+fn hand_planes() -> Vec<(String, Vec<f32>)> {
     let p = |v: [f32; 6]| v.to_vec();
     let planes = vec![
         ("diffuse.R".into(), p([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])),
@@ -39,7 +43,7 @@ fn hand_frame() -> Frame {
         ("depthVariance.Z".into(), p([1.5; 6])),
         ("covarianceVariance.Z".into(), p([0.03125; 6])),
     ];
-    Frame::from_planes(3, 2, planes, REQUIRED, &Default::default()).unwrap()
+    planes
 }
 
 fn close(a: f32, b: f32) -> bool {
@@ -50,7 +54,8 @@ fn close(a: f32, b: f32) -> bool {
 fn preprocessing_matches_closed_form() {
     let frame = hand_frame();
     let stats = FrameStats::of(&frame);
-    assert_eq!(stats, FrameStats { depth_max: 8.0, covariance_max: 0.5 });
+    // Hit depths 1, 2, 2, 4, 8: median 2, so depths above 32 would be far.
+    assert_eq!(stats, FrameStats { depth_max: 8.0, depth_far: 32.0, covariance_max: 0.5 });
     let t = preprocess(&frame, &stats, FeatureSet::Full, Rect { x: 0, y: 0, w: 3, h: 2 });
     let n = 6;
     let ch = |v: &[f32], c: usize| v[c * n..(c + 1) * n].to_vec();
@@ -94,6 +99,42 @@ fn preprocessing_matches_closed_form() {
     for (j, &k) in keep.iter().enumerate() {
         assert_eq!(ch(&nocov.features, j), f(k), "feature {k}");
     }
+}
+
+#[test]
+fn depths_far_beyond_the_frames_median_are_read_as_no_hit() {
+    // A sky dome 10⁵ away behind the hand frame's background pixel, and a huge variance
+    // where a pixel's samples mixed it with a near surface.
+    let mut planes = hand_planes();
+    for (name, plane) in planes.iter_mut() {
+        match name.as_str() {
+            "depth.Z" => plane[4] = 1e5,
+            "depthVariance.Z" => plane[5] = 1e6,
+            _ => {}
+        }
+    }
+    let frame = Frame::from_planes(3, 2, planes, REQUIRED, &Default::default()).unwrap();
+    let stats = FrameStats::of(&frame);
+    // Hits 1, 2, 2, 4, 8, 1e5: the lower median 2; 1e5 > 16 × 2 is far.
+    assert_eq!(stats, FrameStats { depth_max: 8.0, depth_far: 32.0, covariance_max: 0.5 });
+    let t = preprocess(&frame, &stats, FeatureSet::Full, Rect { x: 0, y: 0, w: 3, h: 2 });
+    // The same inputs as with the background at 0 (the hand frame), but for the saturated variance.
+    let plain =
+        preprocess(&hand_frame(), &FrameStats::of(&hand_frame()), FeatureSet::Full, Rect { x: 0, y: 0, w: 3, h: 2 });
+    let n = 6;
+    for k in 0..28 {
+        let (a, b) = (&t.features[k * n..][..n], &plain.features[k * n..][..n]);
+        if k == 10 {
+            // depthVariance / 8²: 0 where the depth is far, at most 1 elsewhere.
+            assert_eq!(a[4], 0.0);
+            assert_eq!(a[5], 1.0);
+            assert_eq!(a[..4], b[..4]);
+        } else {
+            assert_eq!(a, b, "feature {k}");
+        }
+    }
+    // A frame without hits: no scale, nothing far.
+    assert_eq!(mcdenoise::engine::depth_scale(&[0.0; 4]), (0.0, f32::INFINITY));
 }
 
 #[test]

@@ -34,7 +34,7 @@ pub use contract::{Component, FeatureSet, InputCompression, Outputs, Precision, 
 pub use device::{Device, IoBinding};
 pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
-pub use preprocess::{FrameStats, Rect, EPS};
+pub use preprocess::{depth_scale, FrameStats, Rect, EPS};
 
 use crate::frame::{Buffer, Frame, Plane, PlaneRef};
 

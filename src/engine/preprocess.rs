@@ -56,22 +56,52 @@ impl Rect {
     }
 }
 
+/// Depths more than this many times the median depth of the frame's hits are "far" and read
+/// as 0, "no hit", as a background is (docs/frame-layout.md, "Depth"). The training frames
+/// reach 9.1 times their median (2026-11-28, every frame of `data/` and the test sets), so
+/// no frame like them has a far depth.
+pub const FAR_DEPTH_RATIO: f32 = 16.0;
+
+/// Largest scaled depth variance: the variance of values in [0, 1] is at most 1/4 (the
+/// training frames reach 0.5, an unbiased estimate at 1–2 spp). A pixel whose samples mix
+/// a near surface with a far one can have a variance many times the square of the frame's
+/// depth scale; it is saturated here instead of reaching the networks as an outlier.
+pub const DEPTH_VARIANCE_LIMIT: f32 = 1.0;
+
 /// Statistics of the whole frame that the per-frame scalings need.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FrameStats {
-    /// Largest depth of the frame.
+    /// The depth scale: the largest depth of the frame that is not far (0 when none is above 0).
     pub depth_max: f32,
+    /// Depths above this are far ([`FAR_DEPTH_RATIO`] times the median depth of the pixels
+    /// with a depth above 0; infinite when there are none).
+    pub depth_far: f32,
     /// Largest covariance of the frame (0 without covariance).
     pub covariance_max: f32,
 }
 
 impl FrameStats {
     pub fn of(frame: &Frame) -> FrameStats {
+        let (depth_max, depth_far) = depth_scale(frame.f32_plane(Buffer::Depth, 0));
         FrameStats {
-            depth_max: frame.plane(Buffer::Depth, 0).max(),
+            depth_max,
+            depth_far,
             covariance_max: if frame.has(Buffer::Covariance) { frame.plane(Buffer::Covariance, 0).max() } else { 0.0 },
         }
     }
+}
+
+/// The depth scale and the far bound of a depth plane ([`FrameStats`]): the median is the
+/// lower one, element `(n − 1) / 2` of the `n` depths above 0 in order.
+pub fn depth_scale(depth: &[f32]) -> (f32, f32) {
+    let mut hits: Vec<f32> = depth.iter().copied().filter(|d| *d > 0.0).collect();
+    if hits.is_empty() {
+        return (0.0, f32::INFINITY);
+    }
+    let k = (hits.len() - 1) / 2;
+    let far = *hits.select_nth_unstable_by(k, f32::total_cmp).1 * FAR_DEPTH_RATIO;
+    let max = hits.iter().copied().filter(|d| *d <= far).fold(0f32, f32::max);
+    (max, far)
 }
 
 /// Network inputs for one region, planar `[channels][h][w]`.
@@ -198,7 +228,8 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             with_gradients(frame, rect, values, b, x, y);
         }
         let (b, x, y) = next();
-        with_gradients(frame, rect, each_pixel(|i| scaled(depth[i], stats.depth_max)), b, x, y);
+        let near = |d: f32| if d > stats.depth_far { 0.0 } else { d };
+        with_gradients(frame, rect, each_pixel(|i| scaled(near(depth[i]), stats.depth_max)), b, x, y);
         if set.uses_covariance() {
             let cov = frame.plane(Buffer::Covariance, 0);
             let (b, x, y) = next();
@@ -209,21 +240,31 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             with_gradients(frame, rect, values, b, x, y);
         }
 
-        let mut var_buffers = vec![
-            (Buffer::NormalVariance, 1.0),
-            (Buffer::AlbedoVariance, 1.0),
-            (Buffer::DepthVariance, inverse_square(stats.depth_max)),
-        ];
+        let mut var_buffers = vec![(Buffer::NormalVariance, 1.0), (Buffer::AlbedoVariance, 1.0)];
         if set.uses_covariance() {
             var_buffers.push((Buffer::CovarianceVariance, inverse_square(stats.covariance_max)));
         }
+        // In input order: normal, albedo, depth, [covariance].
+        let slot = |j: usize| if j < 2 { j } else { j + 1 };
         for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {
             let planes = frame.rgb(buffer);
-            variance_luminance(frame, rect, &mut vars[j * n..][..n], scale, |c, start, v, _| {
+            variance_luminance(frame, rect, &mut vars[slot(j) * n..][..n], scale, |c, start, v, _| {
                 planes[c].read(start, v);
                 v.iter_mut().for_each(|v| *v = bounded(*v));
             });
         }
+        // The depth's, 0 where the depth is far (as for a background) and saturated.
+        let planes = frame.rgb(Buffer::DepthVariance);
+        let scale = inverse_square(stats.depth_max);
+        let out = &mut vars[2 * n..][..n];
+        let start = |row: usize| (rect.y + row) * frame.width + rect.x;
+        let channel = |c: usize, start: usize, v: &mut [f32], _: &mut [f32]| {
+            planes[c].read(start, v);
+            for (v, d) in v.iter_mut().zip(&depth[start..]) {
+                *v = if *d > stats.depth_far { 0.0 } else { bounded(*v) };
+            }
+        };
+        luminance_rows(out, rect.w, start, channel, |l| bounded(l * scale).min(DEPTH_VARIANCE_LIMIT));
     }
 }
 

@@ -35,6 +35,12 @@ DEPTH, COV = 12, 13
 # Depths at or above this are a renderer's "infinitely far", read as 0 ("no hit"), as the
 # engine does (`NO_HIT_DEPTH` in src/frame/layout.rs).
 NO_HIT_DEPTH = 1e9
+# Depths more than this many times the median of a frame's depths above 0 are "far", read as
+# 0 with their variance, and the depth scale is the largest depth that is not far; scaled
+# depth variances are saturated at DEPTH_VARIANCE_LIMIT (`FAR_DEPTH_RATIO`,
+# `DEPTH_VARIANCE_LIMIT` and `depth_scale` in src/engine/preprocess.rs).
+FAR_DEPTH_RATIO = 16.0
+DEPTH_VARIANCE_LIMIT = 1.0
 VAR = {"diffuse": 14, "specular": 15, "albedo": 16, "normal": 17, "depth": 18, "covariance": 19}
 
 # Frame channel names (as written by the data generator) of each raw channel.
@@ -132,11 +138,26 @@ def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) 
     # Depth as the engine reads it: non-finite and "infinitely far" samples are "no hit", 0.
     out[DEPTH] = np.where(np.isfinite(out[DEPTH]) & (out[DEPTH] < NO_HIT_DEPTH), out[DEPTH], 0.0)
     out = np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=0.0)  # half-float files overflow to inf
+    depth_max, far = depth_scale(out[DEPTH])
+    out[VAR["depth"]][out[DEPTH] > far] = 0.0
+    out[DEPTH][out[DEPTH] > far] = 0.0
     if albedo_prefilter:
         a = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]])
         # Stored as the engine stores it: in half float where every sample fits.
         out[ALBEDO] = a.astype(np.float16).astype(np.float32) if np.abs(a).max(initial=0.0) <= HALF_MAX else a
-    return out, float(max(out[DEPTH].max(), 0.0)), float(max(out[COV].max(), 0.0))
+    return out, depth_max, float(max(out[COV].max(), 0.0))
+
+
+def depth_scale(depth: np.ndarray) -> tuple[float, float]:
+    """The depth scale of a frame (its largest depth that is not far; 0 without depths above
+    0) and the bound above which depths are far (FAR_DEPTH_RATIO times the lower median of
+    the depths above 0; infinite without them), as the engine computes them."""
+    hits = depth[depth > 0]
+    if hits.size == 0:
+        return 0.0, float("inf")
+    k = (hits.size - 1) // 2
+    far = float(np.float32(np.partition(hits, k)[k]) * np.float32(FAR_DEPTH_RATIO))
+    return float(hits[hits <= far].max()), far
 
 
 def _gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -183,7 +204,7 @@ def preprocess(raw: torch.Tensor, depth_max: torch.Tensor, cov_max: torch.Tensor
     variances = torch.cat([
         raw[:, VAR["normal"]:VAR["normal"] + 1],
         raw[:, VAR["albedo"]:VAR["albedo"] + 1],
-        raw[:, VAR["depth"]:VAR["depth"] + 1] * inv_sq(depth_max),
+        (raw[:, VAR["depth"]:VAR["depth"] + 1] * inv_sq(depth_max)).clamp(max=DEPTH_VARIANCE_LIMIT),
         raw[:, VAR["covariance"]:VAR["covariance"] + 1] * inv_sq(cov_max),
     ], 1)
     gx, gy = _gradients(base)
