@@ -135,6 +135,15 @@ fn depths_far_beyond_the_frames_median_are_read_as_no_hit() {
     }
     // A frame without hits: no scale, nothing far.
     assert_eq!(mcdenoise::engine::depth_scale(&[0.0; 4]), (0.0, f32::INFINITY));
+    // A dome over most of the frame: the median is the dome's, but the four nearer depths
+    // (a quarter or more) give the bound: their lower median 2, far above 32.
+    let mut dome = vec![1e5f32; 6];
+    dome.extend([1.0, 2.0, 3.0, 4.0]);
+    assert_eq!(mcdenoise::engine::depth_scale(&dome), (4.0, 32.0));
+    // Two nearer depths of ten are not a quarter: the dome is the scene.
+    let mut mostly = vec![1e5f32; 8];
+    mostly.extend([1.0, 2.0]);
+    assert_eq!(mcdenoise::engine::depth_scale(&mostly), (1e5, 16e5));
 }
 
 #[test]

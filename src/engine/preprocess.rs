@@ -57,9 +57,9 @@ impl Rect {
 }
 
 /// Depths more than this many times the median depth of the frame's hits are "far" and read
-/// as 0, "no hit", as a background is (docs/frame-layout.md, "Depth"). The training frames
-/// reach 9.1 times their median (2026-11-28, every frame of `data/` and the test sets), so
-/// no frame like them has a far depth.
+/// as 0, "no hit", as a background is (docs/frame-layout.md, "Depth"). The frames of the
+/// data sets reach 9.1 times their median (2026-11-28, every frame of `data/` and the test
+/// sets), so no frame like them has a far depth.
 pub const FAR_DEPTH_RATIO: f32 = 16.0;
 
 /// Largest scaled depth variance: the variance of values in [0, 1] is at most 1/4 (the
@@ -91,17 +91,31 @@ impl FrameStats {
     }
 }
 
-/// The depth scale and the far bound of a depth plane ([`FrameStats`]): the median is the
-/// lower one, element `(n − 1) / 2` of the `n` depths above 0 in order.
+/// The depth scale and the far bound of a depth plane ([`FrameStats`]). The median is the
+/// lower one, element `(n − 1) / 2` of the `n` depths above 0 in order. Where a quarter or
+/// more of them lie below 1/[`FAR_DEPTH_RATIO`] of that median, the median is of a far
+/// part that covers most of the frame (a sky dome behind a landscape), and the bound is
+/// taken from the median of those nearer depths instead. No training frame has such a
+/// quarter (their depths above 0 reach at most 11.1 times their first quartile).
 pub fn depth_scale(depth: &[f32]) -> (f32, f32) {
     let mut hits: Vec<f32> = depth.iter().copied().filter(|d| *d > 0.0).collect();
     if hits.is_empty() {
         return (0.0, f32::INFINITY);
     }
-    let k = (hits.len() - 1) / 2;
-    let far = *hits.select_nth_unstable_by(k, f32::total_cmp).1 * FAR_DEPTH_RATIO;
+    let mut median = lower_median(&mut hits);
+    let mut near: Vec<f32> = hits.iter().copied().filter(|d| *d < median / FAR_DEPTH_RATIO).collect();
+    if 4 * near.len() >= hits.len() {
+        median = lower_median(&mut near);
+    }
+    let far = median * FAR_DEPTH_RATIO;
     let max = hits.iter().copied().filter(|d| *d <= far).fold(0f32, f32::max);
     (max, far)
+}
+
+/// Element `(n − 1) / 2` of `values` in order (reordering them); `values` is not empty.
+fn lower_median(values: &mut [f32]) -> f32 {
+    let k = (values.len() - 1) / 2;
+    *values.select_nth_unstable_by(k, f32::total_cmp).1
 }
 
 /// Network inputs for one region, planar `[channels][h][w]`.

@@ -151,13 +151,22 @@ def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) 
 def depth_scale(depth: np.ndarray) -> tuple[float, float]:
     """The depth scale of a frame (its largest depth that is not far; 0 without depths above
     0) and the bound above which depths are far (FAR_DEPTH_RATIO times the lower median of
-    the depths above 0; infinite without them), as the engine computes them."""
+    the depths above 0, or of those below 1/FAR_DEPTH_RATIO of it where they are a quarter
+    or more; infinite without depths above 0), as the engine computes them."""
     hits = depth[depth > 0]
     if hits.size == 0:
         return 0.0, float("inf")
-    k = (hits.size - 1) // 2
-    far = float(np.float32(np.partition(hits, k)[k]) * np.float32(FAR_DEPTH_RATIO))
+    median = _lower_median(hits)
+    near = hits[hits < median / np.float32(FAR_DEPTH_RATIO)]
+    if 4 * near.size >= hits.size:
+        median = _lower_median(near)
+    far = float(median * np.float32(FAR_DEPTH_RATIO))
     return float(hits[hits <= far].max()), far
+
+
+def _lower_median(values: np.ndarray) -> np.float32:
+    k = (values.size - 1) // 2
+    return np.float32(np.partition(values, k)[k])
 
 
 def _gradients(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

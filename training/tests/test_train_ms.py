@@ -23,15 +23,16 @@ BIN = os.environ.get("MCDENOISE_BIN", "")
 
 
 @needs_engine
-@pytest.mark.parametrize("covariance", [True, False])
-def test_preprocessing_matches_the_engine(tmp_path, covariance):
+@pytest.mark.parametrize("covariance,dome_rows", [(True, 1), (False, 1), (False, 28)])
+def test_preprocessing_matches_the_engine(tmp_path, covariance, dome_rows):
     ch = synthetic_frame(40, 48, seed=3, covariance=covariance)
     ref = {k: v * 0.9 for k, v in ch.items()}
     # A background written as "infinitely far" (1e10, 1e30): both sides read it as no hit.
     ch["depth.Z"][0, :5], ch["depth.Z"][1, :3] = 1e10, 1e30
-    # A sky dome far beyond the scene, read as no hit too, and a depth variance far above the
-    # square of the depth scale (a pixel mixing a near surface with the dome), saturated.
-    ch["depth.Z"][2, :4], ch["depthVariance.Z"][3, :2] = 1e5, 1e6
+    # A sky dome far beyond the scene (over part of a row, or over most of the frame), read
+    # as no hit too, and a depth variance far above the square of the depth scale (a pixel
+    # mixing a near surface with the dome), saturated.
+    ch["depth.Z"][2:2 + dome_rows, :44], ch["depthVariance.Z"][31, :2] = 1e5, 1e6
     write_exr(tmp_path / "f.exr", ch)
     write_exr(tmp_path / "r.exr", ref)
     # The firefly stage and the albedo prefilter are the engine's own (off here, tested
