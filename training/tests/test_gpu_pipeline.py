@@ -26,16 +26,19 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
 
     home = tmp_path / "home"
     env = {**os.environ, "GPU_HOME": str(home), "DEVICE": "cpu", "PY": sys.executable, "WORKERS": "2",
-           "VAL_WORKERS": "1", "TEST_WORKERS": "1", "SIZE": "32", "SPP": "2,8", "TEST_SPP": "2,8",
+           "VAL_WORKERS": "1", "TEST_WORKERS": "1", "SIZE": "32,40", "SPP": "2,8", "TEST_SPP": "2,8",
            "REF_SPP": "16", "PATCH": "16", "BATCH": "2", "VAL_FRAMES": "2",
            "RUNS": f"a=--l1 1 {TINY};b=--l1 1 --ssim 0.2 {TINY}"}
     _run(env, "render", "40")
-    splits = {}
+    splits, sides = {}, {}
     for m in home.glob("*/*/manifest.jsonl"):
         for line in m.read_text().splitlines():
             r = json.loads(line)
             splits.setdefault(m.parent.name, set()).add(r["split"])
+            sides.setdefault(m.parent.name, set()).add((r["width"], r["height"]))
     assert splits.get("w0") == {"val"} and splits.get("w1") == {"train"} and splits.get("t0") == {"test"}
+    # SIZE "32,40": worker 1 renders at the second size; validation and test at the first.
+    assert sides == {"w0": {(32, 32)}, "w1": {(40, 40)}, "t0": {(32, 32)}}, sides
 
     # A second data set of another size (frames of 48², as if from the CPU), carried in two
     # pieces with every other noisy level, trains beside the rendered 32² frames.
