@@ -73,8 +73,7 @@ pub const DEPTH_VARIANCE_LIMIT: f32 = 1.0;
 pub struct FrameStats {
     /// The depth scale: the largest depth of the frame that is not far (0 when none is above 0).
     pub depth_max: f32,
-    /// Depths above this are far ([`FAR_DEPTH_RATIO`] times the median depth of the pixels
-    /// with a depth above 0; infinite when there are none).
+    /// Depths above this are far ([`depth_scale`]; infinite when no depth is above 0).
     pub depth_far: f32,
     /// Largest covariance of the frame (0 without covariance).
     pub covariance_max: f32,
@@ -185,7 +184,7 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             );
         }
         let dv = frame.rgb(Buffer::DiffuseVariance);
-        variance_luminance(frame, rect, var, 1.0, |c, start, v, a| {
+        variance_luminance(frame, rect, var, 1.0, INPUT_LIMIT, |c, start, v, a| {
             dv[c].read(start, v);
             albedo[c].read(start, a);
             for (v, a) in v.iter_mut().zip(a.iter()) {
@@ -214,7 +213,7 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             );
         }
         let sv = frame.rgb(Buffer::SpecularVariance);
-        variance_luminance(frame, rect, var, 1.0, |c, start, v, _| {
+        variance_luminance(frame, rect, var, 1.0, INPUT_LIMIT, |c, start, v, _| {
             sv[c].read(start, v);
             for (v, s) in v.iter_mut().zip(&s[c][start..]) {
                 *v = bounded(*v / (1.0 + s.max(0.0)).powi(2));
@@ -254,31 +253,29 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             with_gradients(frame, rect, values, b, x, y);
         }
 
-        let mut var_buffers = vec![(Buffer::NormalVariance, 1.0), (Buffer::AlbedoVariance, 1.0)];
+        let mut var_buffers = vec![
+            (Buffer::NormalVariance, 1.0, INPUT_LIMIT),
+            (Buffer::AlbedoVariance, 1.0, INPUT_LIMIT),
+            // Saturated, and 0 where the depth is far (as for a background).
+            (Buffer::DepthVariance, inverse_square(stats.depth_max), DEPTH_VARIANCE_LIMIT),
+        ];
         if set.uses_covariance() {
-            var_buffers.push((Buffer::CovarianceVariance, inverse_square(stats.covariance_max)));
+            var_buffers.push((Buffer::CovarianceVariance, inverse_square(stats.covariance_max), INPUT_LIMIT));
         }
-        // In input order: normal, albedo, depth, [covariance].
-        let slot = |j: usize| if j < 2 { j } else { j + 1 };
-        for (j, (buffer, scale)) in var_buffers.into_iter().enumerate() {
+        for (j, (buffer, scale, limit)) in var_buffers.into_iter().enumerate() {
             let planes = frame.rgb(buffer);
-            variance_luminance(frame, rect, &mut vars[slot(j) * n..][..n], scale, |c, start, v, _| {
+            let far_is_zero = buffer == Buffer::DepthVariance;
+            variance_luminance(frame, rect, &mut vars[j * n..][..n], scale, limit, |c, start, v, _| {
                 planes[c].read(start, v);
                 v.iter_mut().for_each(|v| *v = bounded(*v));
+                if far_is_zero {
+                    v.iter_mut()
+                        .zip(&depth[start..])
+                        .filter(|(_, d)| **d > stats.depth_far)
+                        .for_each(|(v, _)| *v = 0.0);
+                }
             });
         }
-        // The depth's, 0 where the depth is far (as for a background) and saturated.
-        let planes = frame.rgb(Buffer::DepthVariance);
-        let scale = inverse_square(stats.depth_max);
-        let out = &mut vars[2 * n..][..n];
-        let start = |row: usize| (rect.y + row) * frame.width + rect.x;
-        let channel = |c: usize, start: usize, v: &mut [f32], _: &mut [f32]| {
-            planes[c].read(start, v);
-            for (v, d) in v.iter_mut().zip(&depth[start..]) {
-                *v = if *d > stats.depth_far { 0.0 } else { bounded(*v) };
-            }
-        };
-        luminance_rows(out, rect.w, start, channel, |l| bounded(l * scale).min(DEPTH_VARIANCE_LIMIT));
     }
 }
 
@@ -299,16 +296,17 @@ fn color_layout(t: &mut [f32], n: usize) -> [&mut [f32]; 4] {
 }
 
 /// [`luminance_rows`] of a three-channel variance over the rect's pixels, times `scale`
-/// and saturated.
+/// and saturated to `limit` (at most [`INPUT_LIMIT`]).
 fn variance_luminance(
     frame: &Frame,
     rect: Rect,
     out: &mut [f32],
     scale: f32,
+    limit: f32,
     channel: impl Fn(usize, usize, &mut [f32], &mut [f32]) + Sync,
 ) {
     let start = |row: usize| (rect.y + row) * frame.width + rect.x;
-    luminance_rows(out, rect.w, start, channel, |l| bounded(l * scale));
+    luminance_rows(out, rect.w, start, channel, |l| bounded(l * scale).min(limit));
 }
 
 /// Fills `out`, rows of `w` pixels, with `finish` of the luminance of three channels, a row

@@ -139,8 +139,8 @@ def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) 
     out[DEPTH] = np.where(np.isfinite(out[DEPTH]) & (out[DEPTH] < NO_HIT_DEPTH), out[DEPTH], 0.0)
     out = np.nan_to_num(out, nan=0.0, posinf=65504.0, neginf=0.0)  # half-float files overflow to inf
     depth_max, far = depth_scale(out[DEPTH])
-    out[VAR["depth"]][out[DEPTH] > far] = 0.0
-    out[DEPTH][out[DEPTH] > far] = 0.0
+    far_pixels = out[DEPTH] > far
+    out[DEPTH][far_pixels] = out[VAR["depth"]][far_pixels] = 0.0
     if albedo_prefilter:
         a = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]])
         # Stored as the engine stores it: in half float where every sample fits.
