@@ -253,6 +253,8 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
             with_gradients(frame, rect, values, b, x, y);
         }
 
+        // In the network's input order (normal, albedo, depth, [covariance]): the index is the
+        // slot of `vars` each variance's luminance goes to.
         let mut var_buffers = vec![
             (Buffer::NormalVariance, 1.0, INPUT_LIMIT),
             (Buffer::AlbedoVariance, 1.0, INPUT_LIMIT),

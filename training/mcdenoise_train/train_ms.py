@@ -27,10 +27,13 @@ Recipe:
   against the reference plus W × the same loss against a trained network's output on the
   same patch, for a cheaper shape learning from the shipped one (`--init … --reshape`).
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine; by default 2e-3 for the
-  production network, 5e-5 for the paper's, `PEAK_LR`), bf16 autocast on CUDA.
+  production network, 5e-5 for the paper's, `PEAK_LR`), bf16 autocast on CUDA; with
+  `--ema D`, an exponential moving average of the weights (decay D per step, from the
+  first weights) is what is validated, kept and exported.
 - **Checkpoints** (`runs` directory, `checkpoint.py`): `best.pt` (network weights and
   config, selected on the validation frames by mean log RelMSE + mean log DSSIM),
-  `state.pt` (network, optimizer, scheduler, step: `--resume` continues), `log.jsonl`,
+  `state.pt` (network, its moving average, optimizer, scheduler, step: `--resume`
+  continues), `log.jsonl`,
   `val.jsonl`.
 """
 
@@ -48,6 +51,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from . import losses
 from .checkpoint import load_checkpoint, load_msnet, load_state, save_checkpoint, save_msnet, save_state
@@ -429,6 +433,10 @@ def parse(argv=None) -> argparse.Namespace:
                         "on the same patch (weight --distill)")
     p.add_argument("--distill", type=float, default=0.5,
                    help="with --teacher: the teacher's share of the loss, the reference's is 1 - W")
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="validate, keep and export an exponential moving average of the weights (decay per step, "
+                        "e.g. 0.999; started at the first weights, those of --init for a fine-tune); 0: the weights "
+                        "as trained")
     p.add_argument("--arch", choices=("msnet", "lin2020"), default="msnet")
     p.add_argument("--lin-width", type=int, default=64, help="lin2020: extractor width (paper: 64)")
     p.add_argument("--lin-blocks", type=int, default=8, help="lin2020: residual blocks (paper: 8)")
@@ -459,6 +467,8 @@ def main(argv=None) -> int:
         raise SystemExit("--teacher distils into the production network (--arch msnet)")
     if a.lr is None:
         a.lr = PEAK_LR[a.arch]
+    if not 0.0 <= a.ema < 1.0:
+        raise SystemExit(f"--ema {a.ema}: the decay per step is at least 0 and below 1")
     if not 0.0 <= a.distill <= 1.0:
         raise SystemExit(f"--distill {a.distill}: the teacher's share of the loss is between 0 and 1")
     torch.set_num_threads(max(1, a.threads))
@@ -510,6 +520,13 @@ def main(argv=None) -> int:
         net = from_arguments(a, len(FEATURES_FULL))
     net = net.to(dev).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=a.lr)
+    # The weights validated, kept and exported: the trained ones, or their moving average
+    # (which starts at the first weights: a fine-tune averages away from the network it starts from).
+    ema = None
+    if a.ema > 0:
+        ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(a.ema), use_buffers=True)
+        ema.update_parameters(net)
+    judged = ema.module if ema is not None else net
     teacher = None
     if a.teacher:
         teacher = load_msnet(a.teacher)[0].to(dev).to(memory_format=torch.channels_last).eval()
@@ -542,6 +559,12 @@ def main(argv=None) -> int:
         st = load_state(state_path, map_location=dev)
         net.load_state_dict(st["model"])
         opt.load_state_dict(st["opt"])
+        if ema is not None and st.get("ema") is not None:
+            ema.load_state_dict(st["ema"])
+        elif ema is not None:
+            ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(a.ema), use_buffers=True)
+            ema.update_parameters(net)  # a run resumed with --ema for the first time averages from here
+            judged = ema.module
         step, best, elapsed = st["step"], st["best"], st["elapsed"]
         if st.get("fitted"):  # a schedule fitted to a time budget keeps its length
             a.steps, a.time_budget, fitted = st["steps"], None, True
@@ -558,13 +581,14 @@ def main(argv=None) -> int:
     if a.init and not a.reshape and not isinstance(net, Lin2020Pair) and step == 0 and len(val):
         # A fine-tune starts from a trained network: that network, scored on the same
         # validation frames, is the one to beat, so best.pt is never worse than the start.
-        best = baseline(net, val, a, out)
+        best = baseline(judged, val, a, out)
     log = open_append(out / "log.jsonl")
     t0 = time.time() - elapsed
     g = torch.Generator().manual_seed(a.seed * 1_000_003 + step)
 
     def save_resume():
         save_state(state_path, model=net.state_dict(), opt=opt.state_dict(), fitted=fitted,
+                   ema=ema.state_dict() if ema is not None else None,
                    step=step, steps=a.steps, best=best, elapsed=time.time() - t0, val_names=list(val.names))
 
     stop = False
@@ -594,6 +618,8 @@ def main(argv=None) -> int:
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         opt.step()
         sched.step()
+        if ema is not None:
+            ema.update_parameters(net)
         step += 1
         if a.time_budget is not None and step in FIT_AT:
             # The first steps are slower (cuDNN's autotuning, allocator growth, a renderer
@@ -614,7 +640,7 @@ def main(argv=None) -> int:
                 print(f"step {step}/{a.steps} loss {row['loss']:.4f} {row['time']:.0f}s", file=sys.stderr, flush=True)
         stop = a.time_limit is not None and time.time() - t_run > a.time_limit
         if step % a.val_every == 0 or step == a.steps or stop:
-            v = scored(net, val, a) if len(val) else {"score": float(loss.detach()), "relmse": float("nan")}
+            v = scored(judged, val, a) if len(val) else {"score": float(loss.detach()), "relmse": float("nan")}
             v.update(step=step, time=time.time() - t0)
             append_jsonl(out / "val.jsonl", v)
             peak = f", largest kernel weight {v['kernel_peak']:.3f}" if "kernel_peak" in v else ""
@@ -622,11 +648,11 @@ def main(argv=None) -> int:
                   f"(input {v.get('input_relmse', float('nan')):.4f}){peak}", file=sys.stderr, flush=True)
             if v["score"] < best:
                 best = v["score"]
-                if isinstance(net, Lin2020Pair):
-                    save_checkpoint(out / "best.pt", {"diffuse": net.diffuse, "specular": net.specular},
+                if isinstance(judged, Lin2020Pair):
+                    save_checkpoint(out / "best.pt", {"diffuse": judged.diffuse, "specular": judged.specular},
                                     step=step, val=v, train_config=vars(a))
                 else:
-                    save_msnet(out / "best.pt", net, step=step, val=v)
+                    save_msnet(out / "best.pt", judged, step=step, val=v)
             save_resume()
     log.close()
     if a.export and a.arch == "lin2020":

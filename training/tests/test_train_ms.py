@@ -350,3 +350,33 @@ def test_a_time_budget_is_refitted_on_the_rate_of_later_steps():
     # Past the budget, the schedule still has steps left to anneal the learning rate.
     assert train_ms.fitted_steps(1000, 12.0, 300.0, 320.0) == 1100
     assert 250 in train_ms.FIT_AT and 50 in train_ms.FIT_AT
+
+
+def test_a_moving_average_of_the_weights_is_what_is_validated_and_kept(tmp_path):
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    small = ["--data", str(root), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
+             "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "1", "--lr", "0.05"]
+    start = tmp_path / "start"
+    assert train_ms.main([*small, "--out", str(start), "--steps", "1"]) == 0
+    init = load_msnet(start / "best.pt")[0].state_dict()
+    # A decay this close to 1 keeps the average at the weights it started from (those of
+    # --init): every validation scores the start again, although the trained weights moved.
+    slow = tmp_path / "slow"
+    assert train_ms.main([*small, "--out", str(slow), "--steps", "3", "--init", str(start / "best.pt"),
+                          "--ema", "0.999999"]) == 0
+    rows = [json.loads(l) for l in open(slow / "val.jsonl")]
+    assert [r["step"] for r in rows] == [0, 1, 2, 3]
+    assert all(r["score"] == pytest.approx(rows[0]["score"], abs=1e-4) for r in rows)
+    state = load_state(slow / "state.pt")
+    trained = {k: v for k, v in state["model"].items()}
+    averaged = {k[len("module."):]: v for k, v in state["ema"].items() if k.startswith("module.")}
+    assert max(float((trained[k] - init[k]).abs().max()) for k in init) > 1e-3
+    assert max(float((averaged[k] - init[k]).abs().max()) for k in init) < 1e-4
+    # Resumed, the average continues from the saved one (not from the trained weights).
+    assert train_ms.main([*small, "--out", str(slow), "--steps", "4", "--init", str(start / "best.pt"),
+                          "--ema", "0.999999", "--resume"]) == 0
+    averaged = {k[len("module."):]: v for k, v in load_state(slow / "state.pt")["ema"].items()
+                if k.startswith("module.")}
+    assert max(float((averaged[k] - init[k]).abs().max()) for k in init) < 1e-4
+    with pytest.raises(SystemExit, match="below 1"):
+        train_ms.main([*small, "--out", str(slow), "--steps", "1", "--ema", "1"])
