@@ -428,6 +428,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--reshape", action="store_true",
                    help="with --init: train the shape the shape options give (fewer extractor blocks, narrower "
                         "decoder levels), started from the checkpoint's weights where they fit (msnet.transplant)")
+    p.add_argument("--blend-shift", type=float, default=0.0, metavar="B",
+                   help="with --init: add B to every blend logit's bias of the network it starts from, reopening "
+                        "coarse pyramid levels whose blends have saturated at 0 (docs/training.md)")
     p.add_argument("--teacher", default=None,
                    help="distil from this msnet checkpoint: the loss also compares the output with the teacher's "
                         "on the same patch (weight --distill)")
@@ -461,6 +464,9 @@ def fitted_steps(step: int, rate: float, budget: float, elapsed: float) -> int:
 
 def main(argv=None) -> int:
     a = parse(argv)
+    if a.blend_shift and (not a.init or a.reshape or a.arch != "msnet"):
+        raise SystemExit("--blend-shift raises the blends of the network a fine-tune starts from: it needs --init "
+                         "(without --reshape)")
     if a.reshape and not a.init:
         raise SystemExit("--reshape needs --init (the checkpoint whose weights start the new shape)")
     if a.teacher and a.arch != "msnet":
@@ -511,6 +517,12 @@ def main(argv=None) -> int:
         net.train()
     elif a.init:
         net = load_msnet(a.init)[0].train()
+        if a.blend_shift:
+            # A blend at sigmoid(-6) passes almost no gradient, so the levels below it neither
+            # contribute nor learn; raising the logits lets the fine-tune decide again.
+            with torch.no_grad():
+                for head in net.blend_heads:
+                    head.bias += a.blend_shift
         for k, v in net.config.items():  # the run's config shows the shape it trained
             if k in ("enc", "dec"):
                 v = ",".join(map(str, v))

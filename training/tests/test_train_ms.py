@@ -380,3 +380,22 @@ def test_a_moving_average_of_the_weights_is_what_is_validated_and_kept(tmp_path)
     assert max(float((averaged[k] - init[k]).abs().max()) for k in init) < 1e-4
     with pytest.raises(SystemExit, match="below 1"):
         train_ms.main([*small, "--out", str(slow), "--steps", "1", "--ema", "1"])
+
+
+def test_a_blend_shift_raises_the_blends_of_the_network_a_fine_tune_starts_from(tmp_path):
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    small = ["--data", str(root), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
+             "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "1"]
+    start = tmp_path / "start"
+    assert train_ms.main([*small, "--out", str(start), "--steps", "1"]) == 0
+    before = load_msnet(start / "best.pt")[0].state_dict()
+    shifted = tmp_path / "shifted"
+    assert train_ms.main([*small, "--out", str(shifted), "--steps", "1", "--lr", "1e-12", "--init",
+                          str(start / "best.pt"), "--blend-shift", "3"]) == 0
+    after = load_state(shifted / "state.pt")["model"]
+    heads = [k for k in before if k.startswith("blend_heads.") and k.endswith(".bias")]
+    assert heads and all(torch.allclose(after[k], before[k] + 3, atol=1e-4) for k in heads)
+    others = [k for k in before if k not in heads]
+    assert all(torch.allclose(after[k], before[k], atol=1e-6) for k in others)
+    with pytest.raises(SystemExit, match="--blend-shift raises"):
+        train_ms.main([*small, "--out", str(shifted), "--steps", "1", "--blend-shift", "3"])
