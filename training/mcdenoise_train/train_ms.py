@@ -532,13 +532,6 @@ def main(argv=None) -> int:
         net = from_arguments(a, len(FEATURES_FULL))
     net = net.to(dev).to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=a.lr)
-    # The weights validated, kept and exported: the trained ones, or their moving average
-    # (which starts at the first weights: a fine-tune averages away from the network it starts from).
-    ema = None
-    if a.ema > 0:
-        ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(a.ema), use_buffers=True)
-        ema.update_parameters(net)
-    judged = ema.module if ema is not None else net
     teacher = None
     if a.teacher:
         teacher = load_msnet(a.teacher)[0].to(dev).to(memory_format=torch.channels_last).eval()
@@ -567,16 +560,11 @@ def main(argv=None) -> int:
         perceptual = PerceptualLoss().to(dev)
     step, best, elapsed, fitted = 0, math.inf, 0.0, False
     state_path = out / "state.pt"
+    st = None
     if a.resume and state_path.exists():
         st = load_state(state_path, map_location=dev)
         net.load_state_dict(st["model"])
         opt.load_state_dict(st["opt"])
-        if ema is not None and st.get("ema") is not None:
-            ema.load_state_dict(st["ema"])
-        elif ema is not None:
-            ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(a.ema), use_buffers=True)
-            ema.update_parameters(net)  # a run resumed with --ema for the first time averages from here
-            judged = ema.module
         step, best, elapsed = st["step"], st["best"], st["elapsed"]
         if st.get("fitted"):  # a schedule fitted to a time budget keeps its length
             a.steps, a.time_budget, fitted = st["steps"], None, True
@@ -588,6 +576,16 @@ def main(argv=None) -> int:
             best = scored(load_msnet(out / "best.pt")[0].to(dev), val, a)["score"]
             print(f"validation frames changed ({len(st['val_names'])} -> {len(val)}): best.pt scored "
                   f"again on them, {best:.3f}", file=sys.stderr, flush=True)
+    # The weights validated, kept and exported: the trained ones, or their moving average,
+    # which starts at the weights the run starts with (a fine-tune averages away from the
+    # network it starts from) or, resumed, continues from the saved one.
+    ema = None
+    if a.ema > 0:
+        ema = AveragedModel(net, multi_avg_fn=get_ema_multi_avg_fn(a.ema), use_buffers=True)
+        ema.update_parameters(net)
+        if st is not None and st.get("ema") is not None:
+            ema.load_state_dict(st["ema"])
+    judged = ema.module if ema is not None else net
     (out / "config.json").write_text(json.dumps(vars(a), indent=2))
     print(f"training: {net.description()}; {net.flops_per_pixel() / 1e6:.3f} MFLOP/px", file=sys.stderr, flush=True)
     if a.init and not a.reshape and not isinstance(net, Lin2020Pair) and step == 0 and len(val):
