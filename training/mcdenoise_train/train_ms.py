@@ -26,6 +26,9 @@ Recipe:
 - **Distillation** (`--teacher CKPT --distill W`): the loss is (1 − W) × the loss above
   against the reference plus W × the same loss against a trained network's output on the
   same patch, for a cheaper shape learning from the shipped one (`--init … --reshape`).
+- **Blends kept open** (`--blend-bound Z`): a penalty on blend logits beyond ±Z, so that no
+  pyramid level's blend saturates at 0 or 1, where it passes almost no gradient and shuts
+  the levels below it for good (docs/training.md, "The blends had shut the coarse levels").
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine; by default 2e-3 for the
   production network, 5e-5 for the paper's, `PEAK_LR`), bf16 autocast on CUDA; with
   `--ema D`, an exponential moving average of the weights (decay D per step, from the
@@ -290,13 +293,31 @@ class Lin2020Pair(nn.Module):
         return "lin2020 pair: " + self.diffuse.description()
 
 
-def forward(net, b: dict[str, torch.Tensor], autocast: bool):
+def outputs(net, b: dict[str, torch.Tensor], autocast: bool) -> list[torch.Tensor]:
+    """The network's outputs on a batch, in float32 (the graph's outputs, before any reconstruction)."""
     with torch.autocast(device_type=b["diffuse"].device.type, dtype=torch.bfloat16, enabled=autocast):
         out = net(b["diffuse"], b["specular"], b["features"])
-    out = [o.float() for o in out]
+    return [o.float() for o in out]
+
+
+def reconstructed(net, out: list[torch.Tensor], b: dict[str, torch.Tensor]):
+    """The filtered batch from the network's `outputs`."""
     if isinstance(net, Lin2020Pair):
         return _recon_v1(out[0], out[1], b["diffuse"][:, :3], b["specular"][:, :3], b["albedo"])
     return reconstruct(out, net.levels, b["diffuse"], b["specular"], b["albedo"])
+
+
+def forward(net, b: dict[str, torch.Tensor], autocast: bool):
+    return reconstructed(net, outputs(net, b, autocast), b)
+
+
+def blend_excess(out: list[torch.Tensor], levels: int, bound: float) -> torch.Tensor:
+    """Mean over the blend outputs of (|logit| − bound)² where |logit| exceeds `bound` (0
+    inside): a penalty that keeps every pyramid level's blend within sigmoid(±bound), where
+    it still passes gradient (a saturated blend shuts the levels below it and does not
+    reopen: docs/training.md, "The blends had shut the coarse levels")."""
+    blends = out[levels:]
+    return sum(torch.relu(b.abs() - bound).square().mean() for b in blends) / max(1, len(blends))
 
 
 @torch.no_grad()
@@ -431,6 +452,11 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--blend-shift", type=float, default=0.0, metavar="B",
                    help="with --init: add B to every blend logit's bias of the network it starts from, reopening "
                         "coarse pyramid levels whose blends have saturated at 0 (docs/training.md)")
+    p.add_argument("--blend-bound", type=float, default=0.0, metavar="Z",
+                   help="penalise blend logits beyond ±Z (0: off; 4 keeps every blend within 0.018–0.982), so that "
+                        "no pyramid level's blend saturates and stops passing gradient (docs/training.md)")
+    p.add_argument("--blend-penalty", type=float, default=0.01, metavar="W",
+                   help="weight of the --blend-bound penalty (mean squared excess of the logits beyond the bound)")
     p.add_argument("--teacher", default=None,
                    help="distil from this msnet checkpoint: the loss also compares the output with the teacher's "
                         "on the same patch (weight --distill)")
@@ -469,6 +495,10 @@ def main(argv=None) -> int:
                          "(without --reshape)")
     if a.reshape and not a.init:
         raise SystemExit("--reshape needs --init (the checkpoint whose weights start the new shape)")
+    if a.blend_bound < 0 or a.blend_penalty < 0:
+        raise SystemExit(f"--blend-bound {a.blend_bound} --blend-penalty {a.blend_penalty}: neither may be negative")
+    if a.blend_bound > 0 and a.arch != "msnet":
+        raise SystemExit("--blend-bound bounds the production network's blends (--arch msnet); lin2020 has none")
     if a.teacher and a.arch != "msnet":
         raise SystemExit("--teacher distils into the production network (--arch msnet)")
     if a.lr is None:
@@ -616,8 +646,13 @@ def main(argv=None) -> int:
             raw, ref = as_beauty(raw, ref, keep_depth=torch.rand(a.batch, generator=g) < 0.5)
         b = batch_inputs(raw, ref, maxima, a.cov_dropout, g, crop=a.patch)
         b = {k: v.contiguous(memory_format=torch.channels_last) for k, v in b.items()}
-        rec = forward(net, b, autocast)
+        out_b = outputs(net, b, autocast)
+        rec = reconstructed(net, out_b, b)
         loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual, perceptual_weight=a.perceptual)
+        if a.blend_bound > 0:
+            excess = blend_excess(out_b, net.levels, a.blend_bound)
+            parts["blend_excess"] = float(excess.detach())
+            loss = loss + a.blend_penalty * excess
         if teacher is not None:
             taught, _ = losses.ms_loss(rec, distill_batch(teacher, b, autocast), l1_weight=a.l1, ssim_weight=a.ssim,
                                        perceptual=perceptual, perceptual_weight=a.perceptual)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from mcdenoise_train import train_ms
-from mcdenoise_train.checkpoint import load_msnet, load_state, save_state
+from mcdenoise_train.checkpoint import load_msnet, load_state, save_msnet, save_state
 from mcdenoise_train.export_ms import read_metadata_v2
 from mcdenoise_train.exr import read_exr, write_exr
 from mcdenoise_train.frames import synthetic_frame
@@ -399,3 +399,46 @@ def test_a_blend_shift_raises_the_blends_of_the_network_a_fine_tune_starts_from(
     assert all(torch.allclose(after[k], before[k], atol=1e-6) for k in others)
     with pytest.raises(SystemExit, match="--blend-shift raises"):
         train_ms.main([*small, "--out", str(shifted), "--steps", "1", "--blend-shift", "3"])
+
+
+def test_blend_excess_is_zero_inside_the_bound_and_quadratic_beyond():
+    levels = 2
+    kernels = [torch.zeros(1, 4, 4, 4), torch.zeros(1, 4, 2, 2)]
+    inside = [torch.full((1, 2, 4, 4), 3.9)]
+    assert float(train_ms.blend_excess([*kernels, *inside], levels, 4.0)) == 0.0
+    # Half the logits 2 beyond the bound (either side), half inside: mean (2²) / 2.
+    beyond = torch.full((1, 2, 4, 4), 1.0)
+    beyond[:, 0], beyond[:, 1, :2] = -6.0, 6.0
+    assert abs(float(train_ms.blend_excess([*kernels, beyond], levels, 4.0)) - (4.0 * 24 / 32)) < 1e-6
+
+
+def test_a_blend_bound_reopens_saturated_blends_that_a_fine_tune_leaves_shut(tmp_path):
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    small = ["--data", str(root), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
+             "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "100", "--ema", "0"]
+    start = tmp_path / "start"
+    assert train_ms.main([*small, "--out", str(start), "--steps", "1"]) == 0
+    net = load_msnet(start / "best.pt")[0]
+    with torch.no_grad():
+        for head in net.blend_heads:  # every blend at sigmoid(-10): shut, as a trained network's can be
+            head.weight.zero_()
+            head.bias.fill_(-10.0)
+    save_msnet(tmp_path / "shut.pt", net, step=0)
+
+    def blend_biases(run: str, *extra: str) -> torch.Tensor:
+        assert train_ms.main([*small, "--out", str(tmp_path / run), "--steps", "20", "--lr", "0.05",
+                              "--init", str(tmp_path / "shut.pt"), *extra]) == 0
+        model = load_state(tmp_path / run / "state.pt")["model"]
+        return torch.cat([model[k] for k in model if k.startswith("blend_heads.") and k.endswith(".bias")])
+
+    left = blend_biases("plain")
+    bounded = blend_biases("bounded", "--blend-bound", "4", "--blend-penalty", "1")
+    # The loss alone passes almost no gradient through sigmoid(-10), and what Adam makes of
+    # it moves the logits either way; the penalty pulls every one of them towards the bound.
+    assert float((left + 10).abs().max()) < 0.5, left
+    assert float(bounded.min()) > -10 + 0.15, bounded
+    logged = [json.loads(line) for line in (tmp_path / "bounded" / "log.jsonl").read_text().splitlines()]
+    assert logged[-1]["blend_excess"] > 0
+    assert all("blend_excess" not in json.loads(line) for line in (tmp_path / "plain" / "log.jsonl").read_text().splitlines())
+    with pytest.raises(SystemExit, match="lin2020 has none"):
+        train_ms.main([*small, "--out", str(tmp_path / "x"), "--steps", "1", "--arch", "lin2020", "--blend-bound", "4"])
