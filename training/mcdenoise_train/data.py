@@ -13,6 +13,8 @@ uniformly, so flat regions are still seen.
 
 from __future__ import annotations
 
+import argparse
+import json
 import os
 import subprocess
 from dataclasses import dataclass
@@ -21,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .contract import select_nocov
-from .files import read_manifest
+from .files import atomic_path, read_manifest
 
 ARRAYS = ("diffuse_color", "specular_color", "features", "albedo", "noisy",
           "diffuse_target", "specular_target", "reference")
@@ -154,3 +156,46 @@ class PatchSampler:
             k: np.stack([self.frames[i].arrays[k][:, y:y + p, x:x + p] for i, y, x in picks])
             for k in ARRAYS
         }
+
+
+def split_scenes(dirs: list[str | os.PathLike], chosen: set[str], chosen_dir: str | os.PathLike,
+                 rest_dir: str | os.PathLike) -> tuple[int, int]:
+    """The complete scenes of the data sets `dirs` as two data sets of flat per-frame records
+    (absolute paths, no copies): the scenes named in `chosen` with split `val` into
+    `chosen_dir` (validation only: what a fine-tune selects on), every other with split
+    `test` into `rest_dir` (judging only). Returns the frame counts; a name in `chosen` that
+    no data set has complete is an error naming it."""
+    frames = [r for d in dirs for r in manifest_frames(d)]
+    missing = chosen - {r["scene"] for r in frames}
+    if missing:
+        raise ValueError(f"no complete scene {', '.join(sorted(missing))} in {', '.join(map(str, dirs))}")
+    counts = []
+    for out, split, keep in ((chosen_dir, "val", True), (rest_dir, "test", False)):
+        rows = [{**{k: r.get(k) for k in ("scene", "seed", "spp", "noisy", "reference")}, "split": split}
+                for r in frames if (r["scene"] in chosen) == keep]
+        Path(out).mkdir(parents=True, exist_ok=True)
+        with atomic_path(Path(out) / "manifest.jsonl") as tmp:
+            Path(tmp).write_text("".join(json.dumps(row) + "\n" for row in rows))
+        counts.append(len(rows))
+    return counts[0], counts[1]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="Data set tools: `split-scenes` (scripts/cpu-pipeline split).")
+    sub = p.add_subparsers(dest="command", required=True)
+    sp = sub.add_parser("split-scenes", help="named scenes into a validation set, the rest into a judging set")
+    sp.add_argument("--data", action="append", required=True, help="data set directory (repeatable)")
+    sp.add_argument("--scenes", required=True, help="comma-separated scene names: the validation set")
+    sp.add_argument("--chosen", required=True, help="directory of the validation set (split `val`)")
+    sp.add_argument("--rest", required=True, help="directory of the other scenes (split `test`)")
+    a = p.parse_args(argv)
+    try:
+        n_val, n_rest = split_scenes(a.data, {s for s in a.scenes.split(",") if s}, a.chosen, a.rest)
+    except ValueError as e:
+        raise SystemExit(str(e))
+    print(f"{n_val} validation frames in {a.chosen}, {n_rest} judging frames in {a.rest}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,102 @@
+"""scripts/cpu-pipeline on tiny inputs: the renders it runs (in order, resumable sets at
+fixed seeds), the validation/judging split of the judging scenes, a fine-tune from a
+starting checkpoint selected on the validation scenes only, and the judgement of the run
+beside the models it started from on the held-out scenes."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mcdenoise_train import data, train_ms
+from mcdenoise_train.data import manifest_frames
+
+from test_train import make_dataset, needs_engine
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "cpu-pipeline"
+
+
+def _run(env, *args, ok=True, timeout=600):
+    res = subprocess.run([str(SCRIPT), *args], env=env, capture_output=True, text=True, timeout=timeout)
+    assert (res.returncode == 0) == ok, f"cpu-pipeline {' '.join(args)}:\n{res.stdout}\n{res.stderr}"
+    return res
+
+
+def _renamed(root: Path, prefix: str, split: str) -> Path:
+    """`root`'s flat manifest with every scene renamed `prefix<n>` and every frame in `split`."""
+    rows = [json.loads(line) for line in (root / "manifest.jsonl").read_text().splitlines()]
+    (root / "manifest.jsonl").write_text("".join(
+        json.dumps({**r, "scene": prefix + r["scene"][1:], "split": split}) + "\n" for r in rows))
+    return root
+
+
+def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
+    env = {**os.environ, "DRY": "1", "JUDGE_SCENES": "2", "DOF_SCENES": "3", "HIRES_SCENES": "4",
+           "TEST_RENDERER": "mitsuba", "RES_A": str(tmp_path / "a")}
+    lines = _run(env, "render").stdout.splitlines()
+    assert len(lines) == 5 and all(line.startswith("mcdenoise_train.datagen.dataset ") for line in lines)
+    a, b, test, dof, hires = lines
+    assert f"--out {tmp_path / 'a'} --scenes 2 --seed-base 500000 --size 384" in a
+    assert "--scenes 2 --seed-base 510000" in b and "--families dof,interior,textures,room,open,metals" in b
+    assert "--test-scenes 8 --size 128 --spp 4,16,64 --ref-spp 4096 --renderer mitsuba" in test
+    assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
+    assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
+
+
+def test_split_scenes_names_what_is_missing(tmp_path):
+    root = make_dataset(tmp_path / "d", frames=3, size=16)
+    assert data.split_scenes([root], {"s0", "s2"}, tmp_path / "v", tmp_path / "h") == (2, 1)
+    assert {(r["scene"], r["split"]) for r in manifest_frames(tmp_path / "v")} == {("s0", "val"), ("s2", "val")}
+    assert [(r["scene"], r["split"]) for r in manifest_frames(tmp_path / "h")] == [("s1", "test")]
+    # The records point at the frames where they are (absolute paths), not at copies.
+    assert Path(manifest_frames(tmp_path / "h")[0]["noisy"]) == root / "s1-spp8.exr"
+    with pytest.raises(ValueError, match="no complete scene s7"):
+        data.split_scenes([root], {"s0", "s7"}, tmp_path / "v2", tmp_path / "h2")
+
+
+@needs_engine
+def test_split_train_and_judge_end_to_end(tmp_path):
+    # Judging scenes (a0-a2, b0-b2), training scenes (t0-t2) and a small starting network
+    # exported as the "shipped" models.
+    res_a = _renamed(make_dataset(tmp_path / "res-a", frames=3, size=48), "a", "train")
+    res_b = _renamed(make_dataset(tmp_path / "res-b", frames=3, size=48), "b", "train")
+    dof = _renamed(make_dataset(tmp_path / "dof", frames=3, size=48), "t", "train")
+    start = tmp_path / "start"
+    assert train_ms.main(["--data", str(dof), "--data", str(res_a), "--out", str(start), "--steps", "1",
+                          "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
+                          "--batch", "2", "--threads", "2", "--device", "cpu"]) == 0
+    home = tmp_path / "cpu"
+    env = {**os.environ, "PY": sys.executable, "CPU_HOME": str(home), "RES_A": str(res_a), "RES_B": str(res_b),
+           "DOF": str(dof), "HIRES": str(tmp_path / "none"), "TEST": str(tmp_path / "no-test"),
+           "VAL_SCENES": "a0,b1", "INIT": str(start / "best.pt"), "MODELS": str(tmp_path / "shipped"),
+           "RECIPE": "--batch 2 --patch 32 --lr 1e-3 --ema 0.9 --blend-bound 4"}
+    subprocess.run([sys.executable, "-m", "mcdenoise_train.export_ms", "--checkpoint", str(start / "best.pt"),
+                    "--out", str(tmp_path / "shipped")], check=True, capture_output=True,
+                   cwd=Path(__file__).resolve().parents[1])
+
+    # Before the split there is nothing to select on.
+    assert "run `" in _run(env, "train", "r", "60", ok=False).stderr
+    out = _run(env, "split").stdout
+    assert "2 validation frames" in out and "4 judging frames" in out
+    assert {r["scene"] for r in manifest_frames(home / "val384")} == {"a0", "b1"}
+    assert {r["scene"] for r in manifest_frames(home / "heldout384")} == {"a1", "a2", "b0", "b2"}
+
+    _run(env, "train", "r", "60", "--steps", "2", "--val-every", "1")
+    config = json.loads((home / "r" / "config.json").read_text())
+    assert config["blend_bound"] == 4 and config["init"] == str(start / "best.pt")
+    # Selected on the validation scenes only: the start's score, then each step's, on 2 frames.
+    vals = [json.loads(line) for line in (home / "r" / "val.jsonl").read_text().splitlines()]
+    assert vals[0]["step"] == 0 and len(vals) >= 2
+    # Run again, it resumes (the schedule's state is there) and goes no further.
+    assert "resumed at step 2" in _run(env, "train", "r", "60", "--steps", "2").stderr
+
+    res = _run(env, "judge", "r")
+    assert "no-test/manifest.jsonl, skipped" in res.stderr
+    results = (home / "r" / "judge-heldout384" / "results.md").read_text()
+    for method in ("input", "r", "shipped"):
+        assert f"| {method} | 4 |" in results, results
+    assert "| r | 4 |" in res.stderr
+    assert (home / "r" / "models" / "full" / "model.onnx").is_file()
