@@ -44,6 +44,10 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert "--test-scenes 8 --size 128 --spp 4,16,64 --ref-spp 4096 --renderer mitsuba" in test
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
+    # With Cycles, its test scenes (minutes each) come after the depth-of-field training scenes.
+    lines = _run({**env, "TEST_RENDERER": "both"}, "render").stdout.splitlines()
+    assert len(lines) == 6 and "--seed-base 620000" in lines[3]
+    assert lines[2].endswith("--renderer mitsuba") and lines[4].endswith("--renderer cycles")
 
 
 def test_split_scenes_names_what_is_missing(tmp_path):
