@@ -352,12 +352,19 @@ def test_a_time_budget_is_refitted_on_the_rate_of_later_steps():
     assert 250 in train_ms.FIT_AT and 50 in train_ms.FIT_AT
 
 
-def test_a_moving_average_of_the_weights_is_what_is_validated_and_kept(tmp_path):
+def _tiny_start(tmp_path, *extra):
+    """The arguments of a tiny network's runs on a tiny data set (`extra` appended), and a
+    one-step run of them to start fine-tunes from."""
     root = make_dataset(tmp_path / "d", frames=3, size=48)
     small = ["--data", str(root), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
-             "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "1", "--lr", "0.05"]
+             "--batch", "2", "--threads", "2", "--device", "cpu", *extra]
     start = tmp_path / "start"
     assert train_ms.main([*small, "--out", str(start), "--steps", "1"]) == 0
+    return small, start
+
+
+def test_a_moving_average_of_the_weights_is_what_is_validated_and_kept(tmp_path):
+    small, start = _tiny_start(tmp_path, "--val-every", "1", "--lr", "0.05")
     init = load_msnet(start / "best.pt")[0].state_dict()
     # A decay this close to 1 keeps the average at the weights it started from (those of
     # --init): every validation scores the start again, although the trained weights moved.
@@ -383,11 +390,7 @@ def test_a_moving_average_of_the_weights_is_what_is_validated_and_kept(tmp_path)
 
 
 def test_a_blend_shift_raises_the_blends_of_the_network_a_fine_tune_starts_from(tmp_path):
-    root = make_dataset(tmp_path / "d", frames=3, size=48)
-    small = ["--data", str(root), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
-             "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "1"]
-    start = tmp_path / "start"
-    assert train_ms.main([*small, "--out", str(start), "--steps", "1"]) == 0
+    small, start = _tiny_start(tmp_path, "--val-every", "1")
     before = load_msnet(start / "best.pt")[0].state_dict()
     shifted = tmp_path / "shifted"
     assert train_ms.main([*small, "--out", str(shifted), "--steps", "1", "--lr", "1e-12", "--init",
@@ -413,11 +416,7 @@ def test_blend_excess_is_zero_inside_the_bound_and_quadratic_beyond():
 
 
 def test_a_blend_bound_reopens_saturated_blends_that_a_fine_tune_leaves_shut(tmp_path):
-    root = make_dataset(tmp_path / "d", frames=3, size=48)
-    small = ["--data", str(root), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
-             "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "100", "--ema", "0"]
-    start = tmp_path / "start"
-    assert train_ms.main([*small, "--out", str(start), "--steps", "1"]) == 0
+    small, start = _tiny_start(tmp_path, "--val-every", "100", "--ema", "0")
     net = load_msnet(start / "best.pt")[0]
     with torch.no_grad():
         for head in net.blend_heads:  # every blend at sigmoid(-10): shut, as a trained network's can be
