@@ -73,7 +73,9 @@ def test_split_train_and_judge_end_to_end(tmp_path):
                           "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
                           "--batch", "2", "--threads", "2", "--device", "cpu"]) == 0
     home = tmp_path / "cpu"
-    env = {**os.environ, "PY": sys.executable, "CPU_HOME": str(home), "RES_A": str(res_a), "RES_B": str(res_b),
+    # Paths relative to the repository root, as the defaults are.
+    rel = lambda p: os.path.relpath(p, SCRIPT.parents[1])  # noqa: E731
+    env = {**os.environ, "PY": sys.executable, "CPU_HOME": rel(home), "RES_A": rel(res_a), "RES_B": rel(res_b),
            "DOF": str(dof), "HIRES": str(tmp_path / "none"), "TEST": str(tmp_path / "no-test"),
            "VAL_SCENES": "a0,b1", "INIT": str(start / "best.pt"), "MODELS": str(tmp_path / "shipped"),
            "RECIPE": "--batch 2 --patch 32 --lr 1e-3 --ema 0.9 --blend-bound 4"}
