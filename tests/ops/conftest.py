@@ -41,17 +41,28 @@ def ort_library() -> str:
     return lib
 
 
+def free_ports(n: int) -> list[int]:
+    """`n` distinct free ports: the sockets are held open together while the ports are
+    chosen (one at a time, a port just released can be handed out again)."""
+    sockets = [socket.socket() for _ in range(n)]
+    try:
+        for s in sockets:
+            s.bind(("127.0.0.1", 0))
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_ports(1)[0]
 
 
 class Daemon:
     def __init__(self, tmp: Path, *extra: str, token: str | None = TOKEN, wait: bool = True, data: Path | None = None):
         tmp.mkdir(parents=True, exist_ok=True)
         self.data = data or tmp / "data"
-        self.http_port, self.grpc_port = free_port(), free_port()
+        self.http_port, self.grpc_port = free_ports(2)
         self.url = f"http://127.0.0.1:{self.http_port}"
         self.token = token
         self.log = open(tmp / "daemon.log", "wb")

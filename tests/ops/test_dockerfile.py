@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import ROOT, VENV_BIN, Daemon, mcdenoise_bin, free_port
+from conftest import ROOT, VENV_BIN, Daemon, mcdenoise_bin, free_port, free_ports
 
 DOCKERFILE = ROOT / "Dockerfile"
 
@@ -191,10 +191,11 @@ def test_the_gpu_image_without_a_gpu_stops_at_start_naming_what_is_missing(tmp_p
         libraries.append((str(cuda_build), "libcuda.so.1 cannot be loaded"))
     for library, reason in libraries:
         run_env = dict(os.environ, **{k: v for k, v in env.items() if k.startswith("MCDENOISE_")})
+        http, grpc, probe = free_ports(3)
         run_env.update(ORT_DYLIB_PATH=library, LD_LIBRARY_PATH=os.path.dirname(library),
                        MCDENOISE_MODELS=str(ROOT / "models"), MCDENOISE_DATA_DIR=str(tmp_path / "data"),
-                       MCDENOISE_HTTP=f"127.0.0.1:{free_port()}", MCDENOISE_GRPC=f"127.0.0.1:{free_port()}",
-                       MCDENOISE_PROBE_HTTP=f"127.0.0.1:{free_port()}")
+                       MCDENOISE_HTTP=f"127.0.0.1:{http}", MCDENOISE_GRPC=f"127.0.0.1:{grpc}",
+                       MCDENOISE_PROBE_HTTP=f"127.0.0.1:{probe}")
         run_env.pop("MCDENOISE_AUTH_TOKENS", None)
         r = subprocess.run([str(mcdenoise_bin()), "serve"], env=run_env, capture_output=True, text=True, timeout=60)
         assert r.returncode != 0, library
@@ -210,12 +211,12 @@ def test_daemon_runs_on_the_image_defaults(tmp_path):
     (root / "opt/mcdenoise/models").symlink_to(ROOT / "models")
     from conftest import ort_library
     os.symlink(ort_library(), root / env["ORT_DYLIB_PATH"].lstrip("/"))
-    port = free_port()
+    port, grpc, probe = free_ports(3)
     run_env = dict(os.environ)
     for k, v in env.items():
         run_env[k] = str(root / v.lstrip("/")) if v.startswith("/") else v
-    run_env.update(MCDENOISE_HTTP=f"127.0.0.1:{port}", MCDENOISE_GRPC=f"127.0.0.1:{free_port()}",
-                   MCDENOISE_PROBE_HTTP=f"127.0.0.1:{free_port()}")
+    run_env.update(MCDENOISE_HTTP=f"127.0.0.1:{port}", MCDENOISE_GRPC=f"127.0.0.1:{grpc}",
+                   MCDENOISE_PROBE_HTTP=f"127.0.0.1:{probe}")
     run_env.pop("MCDENOISE_AUTH_TOKENS", None)
     proc = subprocess.Popen([str(mcdenoise_bin()), "serve"], env=run_env, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, cwd=tmp_path)

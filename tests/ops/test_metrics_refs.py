@@ -19,7 +19,7 @@ import urllib.request
 import pytest
 import yaml
 
-from conftest import ROOT, free_port
+from conftest import ROOT, free_port, free_ports
 from test_dockerfile import serve_env_vars
 from test_k8s import shared_mode_docs
 
@@ -139,7 +139,7 @@ def test_every_metric_referenced_is_exported(daemon, tmp_path):
 
 def start_nats(tmp_path):
     """A local nats-server with JetStream on loopback ports; (process, client port)."""
-    port, monitor = free_port(), free_port()
+    port, monitor = free_ports(2)
     log = open(tmp_path / "nats.log", "wb")
     proc = subprocess.Popen([shutil.which("nats-server"), "-js", "-a", "127.0.0.1", "-p", str(port), "-m", str(monitor),
                              "-sd", str(tmp_path / "js")], stdout=log, stderr=subprocess.STDOUT)
