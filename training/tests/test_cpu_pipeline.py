@@ -73,10 +73,13 @@ def test_split_train_and_judge_end_to_end(tmp_path):
                           "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8", "--patch", "32",
                           "--batch", "2", "--threads", "2", "--device", "cpu"]) == 0
     home = tmp_path / "cpu"
+    # A training set whose first scene is still rendering: no manifest yet.
+    hires = tmp_path / "hires"
+    (hires / "train").mkdir(parents=True)
     # Paths relative to the repository root, as the defaults are.
     rel = lambda p: os.path.relpath(p, SCRIPT.parents[1])  # noqa: E731
     env = {**os.environ, "PY": sys.executable, "CPU_HOME": rel(home), "RES_A": rel(res_a), "RES_B": rel(res_b),
-           "DOF": str(dof), "HIRES": str(tmp_path / "none"), "TEST": str(tmp_path / "no-test"),
+           "DOF": str(dof), "HIRES": str(hires), "TEST": str(tmp_path / "no-test"),
            "VAL_SCENES": "a0,b1", "INIT": str(start / "best.pt"), "MODELS": str(tmp_path / "shipped"),
            "RECIPE": "--batch 2 --patch 32 --lr 1e-3 --ema 0.9 --blend-bound 4"}
     subprocess.run([sys.executable, "-m", "mcdenoise_train.export_ms", "--checkpoint", str(start / "best.pt"),
@@ -93,6 +96,8 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     _run(env, "train", "r", "60", "--steps", "2", "--val-every", "1")
     config = json.loads((home / "r" / "config.json").read_text())
     assert config["blend_bound"] == 4 and config["init"] == str(start / "best.pt")
+    # The set being rendered is given too, for its scenes to join as they complete.
+    assert config["data"] == [str(dof), str(hires), str(home / "val384")]
     # Selected on the validation scenes only: the start's score, then each step's, on 2 frames.
     vals = [json.loads(line) for line in (home / "r" / "val.jsonl").read_text().splitlines()]
     assert vals[0]["step"] == 0 and len(vals) >= 2
