@@ -111,3 +111,17 @@ def test_split_train_and_judge_end_to_end(tmp_path):
         assert f"| {method} | 4 |" in results, results
     assert "| r | 4 |" in res.stderr
     assert (home / "r" / "models" / "full" / "model.onnx").is_file()
+
+    # VARIANT=beauty: exported as the beauty variant, and both judged as it (every frame as a
+    # beauty-only file, so other numbers than the automatic choice's above).
+    judged = lambda: {(r["frame"], r["method"]): r["dssim"] for r in map(json.loads, (  # noqa: E731
+        home / "r" / "judge-heldout384" / "results.jsonl").read_text().splitlines())}
+    auto = judged()
+    subprocess.run([sys.executable, "-m", "mcdenoise_train.export_ms", "--checkpoint", str(start / "best.pt"),
+                    "--out", str(tmp_path / "shipped"), "--variants", "beauty"], check=True, capture_output=True,
+                   cwd=Path(__file__).resolve().parents[1])
+    _run({**env, "VARIANT": "beauty"}, "judge", "r")
+    assert (home / "r" / "models" / "beauty" / "model.onnx").is_file()
+    beauty = judged()
+    assert beauty.keys() == auto.keys() and {m for _, m in beauty} == {"input", "r", "shipped"}
+    assert all(beauty[k] != auto[k] for k in beauty if k[1] != "input")
