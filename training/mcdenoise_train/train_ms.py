@@ -19,7 +19,9 @@ Recipe:
   as is, `nocov` with the covariance inputs cut (`export_ms.nocov_from_full`).
 - **Loss** (`losses.py`): SMAPE of each component in its preprocessed domain (Lin et al.
   2020), plus L1 of the final color after the transfer function log(1 + x) (robust to HDR
-  outliers), plus `--perceptual W` × the VGG-16 feature loss when the weights are present.
+  outliers), plus `--perceptual W` × the VGG-16 feature loss when the weights are present,
+  plus `--ssim W` × DSSIM and `--relmse W` × RelMSE of the final color (`relmse_huber`: the
+  few pixels beside an emitter's edge that carry most of the metric weigh as in it).
 - **Beauty** (`--beauty`): every patch as a frame with only a beauty, albedo and normal
   (`preprocess.as_beauty`: the sum of both components in the diffuse slot, no variances, no
   covariance, the depth dropped in half the patches); exported as the `beauty` variant.
@@ -422,6 +424,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--cov-dropout", type=float, default=0.3, help="fraction of patches with covariance zeroed")
     p.add_argument("--l1", type=float, default=1.0, help="weight of L1 on log(1 + color)")
     p.add_argument("--ssim", type=float, default=0.0, help="weight of DSSIM of the final color")
+    p.add_argument("--relmse", type=float, default=0.0,
+                   help="weight of RelMSE of the final color (losses.relmse_huber: the metric's per-pixel "
+                        "term, linear beyond 10x a pixel's scale)")
     p.add_argument("--perceptual", type=float, default=0.0)
     p.add_argument("--albedo-prefilter", choices=("on", "off"), default="on",
                    help="prefilter the albedo as the engine does (`mcdenoise run --albedo-prefilter`, on by default)")
@@ -648,7 +653,8 @@ def main(argv=None) -> int:
         b = {k: v.contiguous(memory_format=torch.channels_last) for k, v in b.items()}
         out_b = outputs(net, b, autocast)
         rec = reconstructed(net, out_b, b)
-        loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual, perceptual_weight=a.perceptual)
+        loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual,
+                                     perceptual_weight=a.perceptual, relmse_weight=a.relmse)
         if a.blend_bound > 0:
             excess = blend_excess(out_b, net.levels, a.blend_bound)
             parts["blend_excess"] = float(excess.detach())

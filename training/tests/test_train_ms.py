@@ -2,6 +2,7 @@
 a few training steps end to end with resume and export."""
 
 import json
+import math
 import os
 import subprocess
 
@@ -441,3 +442,31 @@ def test_a_blend_bound_reopens_saturated_blends_that_a_fine_tune_leaves_shut(tmp
     assert all("blend_excess" not in json.loads(line) for line in (tmp_path / "plain" / "log.jsonl").read_text().splitlines())
     with pytest.raises(SystemExit, match="lin2020 has none"):
         train_ms.main([*small, "--out", str(tmp_path / "x"), "--steps", "1", "--arch", "lin2020", "--blend-bound", "4"])
+
+
+def test_relmse_loss_is_the_metric_within_delta_and_linear_beyond():
+    r = torch.full((1, 3, 4, 4), 0.1)
+    x = r.clone()
+    x[0, :, 1, 1] = 0.1 + 0.5 * math.sqrt(0.02)  # e = 0.5: e² = 0.25
+    assert float(train_ms.losses.relmse_huber(x, r)) == pytest.approx(float(train_ms.losses.relmse(x, r)), rel=1e-5)
+    # A pixel lifted 20x its scale (an emitter's leak), delta 10: 2·10·20 − 100 = 300, not 400.
+    x[0, :, 1, 1] = 0.1 + 20 * math.sqrt(0.02)
+    assert float(train_ms.losses.relmse_huber(x, r)) * x.numel() / 3 == pytest.approx(300, rel=1e-4)
+    assert float(train_ms.losses.relmse(x, r)) * x.numel() / 3 == pytest.approx(400, rel=1e-4)
+    # Its gradient is the metric's where the metric is quadratic and bounded beyond.
+    x.requires_grad_(True)
+    train_ms.losses.relmse_huber(x, r).backward()
+    assert float(x.grad[0, 0, 1, 1]) == pytest.approx(2 * 10 / math.sqrt(0.02) / x.numel(), rel=1e-4)
+
+
+def test_relmse_weight_enters_the_loss_and_the_log(tmp_path):
+    small, start = _tiny_start(tmp_path)
+    run = tmp_path / "rel"
+    assert train_ms.main([*small, "--out", str(run), "--steps", "20", "--init", str(start / "best.pt"),
+                          "--relmse", "1"]) == 0
+    rows = [json.loads(line) for line in open(run / "log.jsonl") if '"loss"' in line]
+    assert rows and all(np.isfinite(r["relmse"]) and r["relmse"] > 0 for r in rows)
+    plain = tmp_path / "plain"
+    assert train_ms.main([*small, "--out", str(plain), "--steps", "20", "--init", str(start / "best.pt")]) == 0
+    plain_rows = [json.loads(line) for line in open(plain / "log.jsonl") if '"loss"' in line]
+    assert plain_rows and all("relmse" not in r for r in plain_rows)
