@@ -45,6 +45,7 @@ Recipe:
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
@@ -456,7 +457,8 @@ def parse(argv=None) -> argparse.Namespace:
                         "decoder levels), started from the checkpoint's weights where they fit (msnet.transplant)")
     p.add_argument("--blend-shift", type=float, default=0.0, metavar="B",
                    help="with --init: add B to every blend logit's bias of the network it starts from, reopening "
-                        "coarse pyramid levels whose blends have saturated at 0 (docs/training.md)")
+                        "coarse pyramid levels whose blends have saturated at 0 (docs/training.md); the network to "
+                        "beat, kept as best.pt until a validation does, stays the one before the shift")
     p.add_argument("--blend-bound", type=float, default=0.0, metavar="Z",
                    help="penalise blend logits beyond ±Z (0: off; 4 keeps every blend within 0.018–0.982), so that "
                         "no pyramid level's blend saturates and stops passing gradient (docs/training.md)")
@@ -540,6 +542,7 @@ def main(argv=None) -> int:
     torch.manual_seed(a.seed)
     if a.beauty:
         a.cov_dropout = 0.0  # no covariance at all
+    unshifted = None  # with --blend-shift, the --init network as it was (the one to beat)
     if a.arch == "lin2020":
         if a.beauty:
             raise SystemExit("--beauty trains the production network (--arch msnet)")
@@ -553,6 +556,7 @@ def main(argv=None) -> int:
     elif a.init:
         net = load_msnet(a.init)[0].train()
         if a.blend_shift:
+            unshifted = copy.deepcopy(net)
             # A blend at sigmoid(-6) passes almost no gradient, so the levels below it neither
             # contribute nor learn; raising the logits lets the fine-tune decide again.
             with torch.no_grad():
@@ -625,8 +629,9 @@ def main(argv=None) -> int:
     print(f"training: {net.description()}; {net.flops_per_pixel() / 1e6:.3f} MFLOP/px", file=sys.stderr, flush=True)
     if a.init and not a.reshape and not isinstance(net, Lin2020Pair) and step == 0 and len(val):
         # A fine-tune starts from a trained network: that network, scored on the same
-        # validation frames, is the one to beat, so best.pt is never worse than the start.
-        best = baseline(judged, val, a, out)
+        # validation frames, is the one to beat, so best.pt is never worse than the start
+        # (with --blend-shift, the network as it was before the shift).
+        best = baseline(unshifted if unshifted is not None else judged, val, a, out)
     log = open_append(out / "log.jsonl")
     t0 = time.time() - elapsed
     g = torch.Generator().manual_seed(a.seed * 1_000_003 + step)

@@ -401,6 +401,14 @@ def test_a_blend_shift_raises_the_blends_of_the_network_a_fine_tune_starts_from(
     assert heads and all(torch.allclose(after[k], before[k] + 3, atol=1e-4) for k in heads)
     others = [k for k in before if k not in heads]
     assert all(torch.allclose(after[k], before[k], atol=1e-6) for k in others)
+    # The network to beat (step 0, kept as best.pt until beaten) is the start before the
+    # shift: the score a run without the shift gives it, not the shifted network's.
+    plain = tmp_path / "plain"
+    assert train_ms.main([*small, "--out", str(plain), "--steps", "1", "--lr", "1e-12", "--init",
+                          str(start / "best.pt")]) == 0
+    scores = lambda run: [json.loads(line)["score"] for line in (run / "val.jsonl").read_text().splitlines()]  # noqa: E731
+    assert scores(shifted)[0] == pytest.approx(scores(plain)[0], abs=1e-6)
+    assert abs(scores(shifted)[1] - scores(shifted)[0]) > 1e-4
     with pytest.raises(SystemExit, match="--blend-shift raises"):
         train_ms.main([*small, "--out", str(shifted), "--steps", "1", "--blend-shift", "3"])
 
