@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 
 SMAPE_EPS = 1e-2
+# RelMSE's denominator r² + RELMSE_EPS (src/metrics.rs).
+RELMSE_EPS = 0.01
 
 
 def smape(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -22,7 +24,7 @@ def smape(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
 
 def relmse(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     """Relative MSE, (x - r)² / (r² + 0.01) averaged; works on numpy arrays as well."""
-    return ((x - r) ** 2 / (r * r + 0.01)).mean()
+    return ((x - r) ** 2 / (r * r + RELMSE_EPS)).mean()
 
 
 def relmse_huber(x: torch.Tensor, r: torch.Tensor, delta: float = 10.0) -> torch.Tensor:
@@ -36,7 +38,7 @@ def relmse_huber(x: torch.Tensor, r: torch.Tensor, delta: float = 10.0) -> torch
     (a pixel δ times its own scale away) the gradient stops growing, so that a reference's
     stray firefly cannot swamp a batch.
     """
-    e = ((x - r) / torch.sqrt(r * r + 0.01)).abs()
+    e = ((x - r) / torch.sqrt(r * r + RELMSE_EPS)).abs()
     return torch.where(e < delta, e * e, 2.0 * delta * e - delta * delta).mean()
 
 
