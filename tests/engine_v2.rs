@@ -10,7 +10,7 @@ use std::path::Path;
 use common::*;
 use mcdenoise::engine::{
     albedo, exposure, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding,
-    ModelLoading, Options, Outputs, Precision, Reconstruction, Variant,
+    ModelLoading, Options, Outputs, Precision, Reconstruction, SpecularPyramid, Variant,
 };
 use model_dirs::*;
 
@@ -162,6 +162,34 @@ fn inputs_compressed_by_the_engine_give_the_graphs_output() {
     write(tmp.path(), "full", "model.onnx", &absent);
     let e = engine_at(tmp.path(), 0);
     assert_eq!(e.models()[0].input_compression, InputCompression::Graph);
+}
+
+#[test]
+fn the_specular_pyramid_follows_the_metadata() {
+    // tiny-v2 predates `mcdenoise.specular_pyramid`: its specular levels average ln(1 + s)
+    // (`log`). Marked `linear`, the same kernels filter levels of ln(1 + the mean of s),
+    // which is larger wherever the samples spread (a rendered 8-spp frame): the specular
+    // comes out brighter, the diffuse is untouched, and tiles still equal the whole frame.
+    let frame = fixture_frame("caustic-spp8.exr");
+    let tmp = tempfile::tempdir().unwrap();
+    let linear = set_meta(&read(&tiny_v2(), "full", "model.onnx"), "mcdenoise.specular_pyramid", "linear");
+    write(tmp.path(), "full", "model.onnx", &linear);
+    let mut log = engine_at(&tiny_v2(), 0);
+    assert_eq!(log.models()[0].specular_pyramid, SpecularPyramid::Log);
+    let a = log.denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
+    let mut whole = engine_at(tmp.path(), 0);
+    assert_eq!(whole.models()[0].specular_pyramid, SpecularPyramid::Linear);
+    let b = whole.denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
+    let tiled = engine_at(tmp.path(), 16).denoise(&frame, Some(Variant::Full), &mut |_| true).unwrap();
+    let sum = |v: &[f32]| v.iter().map(|x| f64::from(*x)).sum::<f64>();
+    for c in 0..3 {
+        assert_eq!(parts(&a).diffuse[c], parts(&b).diffuse[c], "diffuse {c}");
+        let (sa, sb) = (&parts(&a).specular[c], &parts(&b).specular[c]);
+        assert!(max_rel_diff(sa, sb) > 1e-3, "specular {c}: the pyramid made no difference");
+        assert!(sum(sb) > sum(sa), "specular {c}: {} is not above {}", sum(sb), sum(sa));
+        let d = max_rel_diff(&parts(&tiled).specular[c], sb);
+        assert!(d <= 1e-5, "specular {c}: tiles differ from the whole frame by {d}");
+    }
 }
 
 fn engine_reconstructing(dir: &Path, tile: usize, reconstruction: Reconstruction) -> Engine {
@@ -499,6 +527,10 @@ fn bad_contract_v2_models_are_refused_with_the_file_and_field_named() {
         (
             Box::new(|b| set_meta(&b, "mcdenoise.input_compression", "gpu")),
             "metadata `mcdenoise.input_compression` is `gpu`, expected `graph` or `engine`",
+        ),
+        (
+            Box::new(|b| set_meta(&b, "mcdenoise.specular_pyramid", "median")),
+            "metadata `mcdenoise.specular_pyramid` is `median`, expected `log` or `linear`",
         ),
     ];
     for (edit, want) in cases {

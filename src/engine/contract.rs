@@ -100,6 +100,9 @@ pub mod keys {
     /// Contract v2, optional: what the network computes in, `fp32` (absent) or `fp16`
     /// ([`super::Precision`]).
     pub const PRECISION: &str = "mcdenoise.precision";
+    /// Contract v2, optional: how the reconstruction's specular pyramid averages, `log`
+    /// (absent) or `linear` ([`super::SpecularPyramid`]).
+    pub const SPECULAR_PYRAMID: &str = "mcdenoise.specular_pyramid";
 }
 
 /// What a contract-v2 graph outputs (docs/model-contract.md, "Reconstruction in the graph").
@@ -244,6 +247,28 @@ impl InputCompression {
         match value {
             None | Some("graph") => Some(InputCompression::Graph),
             Some("engine") => Some(InputCompression::Engine),
+            Some(_) => None,
+        }
+    }
+}
+
+/// How a contract-v2 reconstruction builds the specular's pyramid (docs/model-contract.md,
+/// "Reconstruction"): the specular color is ln(1 + s), and its coarser levels are the 2×2
+/// means of that (`Log`, v2 models without the key) or ln(1 + the 2×2 means of s) (`Linear`).
+/// The diffuse's levels are always the means of its color.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SpecularPyramid {
+    Log,
+    Linear,
+}
+
+impl SpecularPyramid {
+    /// The value of [`keys::SPECULAR_PYRAMID`] (absent = `Log`).
+    pub fn parse(value: Option<&str>) -> Option<SpecularPyramid> {
+        match value {
+            None | Some("log") => Some(SpecularPyramid::Log),
+            Some("linear") => Some(SpecularPyramid::Linear),
             Some(_) => None,
         }
     }

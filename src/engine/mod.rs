@@ -30,7 +30,9 @@ use std::time::{Duration, Instant};
 use serde::Serialize;
 
 pub use albedo::AlbedoPrefilter;
-pub use contract::{Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, Variant};
+pub use contract::{
+    Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, SpecularPyramid, Variant,
+};
 pub use device::{Device, IoBinding};
 pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
@@ -941,6 +943,7 @@ mod tests {
             input_compression: InputCompression::Engine,
             outputs: Outputs::Kernels,
             precision: Precision::Fp32,
+            specular_pyramid: contract::SpecularPyramid::Log,
         }
     }
 

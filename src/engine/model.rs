@@ -11,8 +11,8 @@ use serde::Serialize;
 use sha2::Digest;
 
 use super::contract::{
-    self, keys, Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, Variant, COLOR_CHANNELS,
-    TAPS,
+    self, keys, Component, FeatureSet, InputCompression, Outputs, Precision, Reconstruction, SpecularPyramid, Variant,
+    COLOR_CHANNELS, TAPS,
 };
 use super::device::{Device, IoBinding};
 use super::multiscale::Pyramid;
@@ -49,6 +49,9 @@ pub struct ModelInfo {
     pub outputs: Outputs,
     /// What the network computes in (`fp32` for contract v1).
     pub precision: Precision,
+    /// How the reconstruction averages the specular's pyramid (`log` for contract v1, which
+    /// has no pyramid).
+    pub specular_pyramid: SpecularPyramid,
 }
 
 fn component_or_both<S: serde::Serializer>(c: &Option<Component>, s: S) -> Result<S::Ok, S::Error> {
@@ -287,6 +290,7 @@ impl Network {
             input_compression: InputCompression::Graph,
             precision: Precision::Fp32,
             outputs: Outputs::Kernels,
+            specular_pyramid: SpecularPyramid::Log,
         };
         Ok(Network { session: model.session, info })
     }
@@ -416,6 +420,7 @@ impl MultiScaleNetwork {
         let outputs = model.optional(keys::OUTPUTS, Outputs::parse, "`kernels` or `filtered`")?;
         let precision =
             model.optional(keys::PRECISION, Precision::parse, "`fp32`, `fp16` or `int8` (then a description)")?;
+        let specular_pyramid = model.optional(keys::SPECULAR_PYRAMID, SpecularPyramid::parse, "`log` or `linear`")?;
         if outputs == Outputs::Filtered && input_compression == InputCompression::Engine {
             return Err(model_error(
                 path,
@@ -473,6 +478,7 @@ impl MultiScaleNetwork {
             input_compression,
             outputs,
             precision,
+            specular_pyramid,
         };
         let binding = if placement.io_binding.enabled() {
             let binding = Binding::new(placement.device)
@@ -498,11 +504,17 @@ impl MultiScaleNetwork {
     ) -> Result<R, EngineError> {
         let (k, levels) = (self.info.kernel_size, self.info.levels);
         let name = self.info.variant;
+        let linear = self.info.specular_pyramid == SpecularPyramid::Linear;
         let outputs = self.infer(diffuse, specular, features, h, w)?;
         let tensor = |output: String, channels: usize, l: usize| {
             extract(&outputs, name, &output, [channels, h >> l, w >> l], (w, h))
         };
-        let mut pyramids = [(); 2].map(|_| Pyramid { kernel_size: k, kernels: Vec::new(), blends: Vec::new() });
+        let mut pyramids = [false, linear].map(|linear_means| Pyramid {
+            kernel_size: k,
+            kernels: Vec::new(),
+            blends: Vec::new(),
+            linear_means,
+        });
         for l in 0..levels {
             let kernels = tensor(format!("kernel_{l}"), 2 * k * k, l)?;
             let (d, s) = kernels.split_at(kernels.len() / 2);

@@ -2,7 +2,7 @@
 //! fine (docs/model-contract.md, "Model contract v2"; Vogels et al. 2018).
 //!
 //! ```text
-//! c_0 = c,  c_{l+1} = avgpool2x2(c_l)
+//! c_0 = c,  c_{l+1} = avgpool2x2(c_l)      (linear means: c_{l+1} = ln(1 + avgpool2x2(e^{c_l} − 1)))
 //! f_l = Σ_t softmax(kernel_l)_t · c_l(x+dx_t, y+dy_t)      edge replication at the region border
 //! o_{L−1} = f_{L−1}
 //! o_l = f_l + σ(blend_l) · (up(o_{l+1}) − up(avgpool2x2(f_l)))
@@ -15,9 +15,14 @@
 //! k² = 25 taps the maximum is found in a first pass over the row's logits (they then stay in
 //! L1/L2 for the second) rather than online. Rows run in parallel on the caller's rayon pool.
 //! At level 0 only the pixels the core needs are filtered and blended.
+//!
+//! A specular color holds ln(1 + s); with linear means (`mcdenoise.specular_pyramid`
+//! `linear`) its coarser levels are ln(1 + the mean of s) rather than the mean of ln(1 + s),
+//! which Jensen's inequality puts below it wherever the samples spread.
 
 use rayon::prelude::*;
 
+use super::compress::{expm1_row, log1p_row};
 use super::preprocess::Rect;
 use super::reconstruct::{accumulate, exp_nonpositive, normalize, Fused, MulAdd, Unfused};
 
@@ -29,6 +34,8 @@ pub struct Pyramid<'a> {
     pub kernels: Vec<&'a [f32]>,
     /// `blends[l]`: blend logits `[h_l][w_l]` of level `l < L − 1`.
     pub blends: Vec<&'a [f32]>,
+    /// The color is ln(1 + x) (≥ 0) and the coarser levels average x, not the color.
+    pub linear_means: bool,
 }
 
 /// Reconstructs one component: `color` is `[3][h][w]` (the preprocessed color of a region
@@ -57,9 +64,21 @@ pub fn reconstruct(p: &Pyramid, color: &[f32], w: usize, h: usize, core: Rect, o
     }
     // The color pyramid, levels 1 … L−1.
     let mut pyramid: Vec<Vec<f32>> = Vec::with_capacity(levels - 1);
-    for l in 1..levels {
-        let fine = if l == 1 { color } else { &pyramid[l - 2] };
-        pyramid.push(avgpool(fine, w >> (l - 1), h >> (l - 1)));
+    if p.linear_means {
+        let mut linear = avgpool_expm1(color, w, h);
+        for l in 1..levels {
+            if l > 1 {
+                linear = avgpool(&linear, w >> (l - 1), h >> (l - 1));
+            }
+            let mut level = linear.clone();
+            level.par_chunks_mut(w >> l).for_each(log1p_row);
+            pyramid.push(level);
+        }
+    } else {
+        for l in 1..levels {
+            let fine = if l == 1 { color } else { &pyramid[l - 2] };
+            pyramid.push(avgpool(fine, w >> (l - 1), h >> (l - 1)));
+        }
     }
     // Coarsest level: o = f. Then each level from L−2 up to 1, whole.
     let (wc, hc) = (w >> (levels - 1), h >> (levels - 1));
@@ -99,6 +118,32 @@ fn avgpool(src: &[f32], w: usize, h: usize) -> Vec<f32> {
             *d = (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
         }
     });
+    dst
+}
+
+/// The largest ln(1 + x) a linear pyramid takes (x = 5.5e34), so that e^x and the means stay
+/// finite (`recon_ms.LINEAR_PYRAMID_MAX`); real frames never come near it.
+const LINEAR_PYRAMID_MAX: f32 = 80.0;
+
+/// 2×2 average pooling of e^x − 1 over `[3][h][w]` (`w`, `h` even), x at most
+/// [`LINEAR_PYRAMID_MAX`]: the first linear level of a color that holds ln(1 + x).
+fn avgpool_expm1(src: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let (wc, hc) = (w / 2, h / 2);
+    let mut dst = vec![0f32; 3 * wc * hc];
+    dst.par_chunks_mut(wc).enumerate().for_each_init(
+        || vec![0f32; 2 * w],
+        |rows, (row, d)| {
+            let (c, y) = (row / hc, row % hc);
+            for (r, s) in rows.iter_mut().zip(&src[c * w * h + 2 * y * w..][..2 * w]) {
+                *r = s.min(LINEAR_PYRAMID_MAX);
+            }
+            expm1_row(rows);
+            let (top, bottom) = rows.split_at(w);
+            for (x, d) in d.iter_mut().enumerate() {
+                *d = (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
+            }
+        },
+    );
     dst
 }
 
@@ -334,7 +379,15 @@ mod tests {
 
     /// The spec, literally, in f64: every level whole, both terms upsampled, PyTorch's
     /// bilinear formula with its source-index arithmetic.
-    fn scalar(k: usize, kernels: &[Vec<f32>], blends: &[Vec<f32>], color: &[f32], w: usize, h: usize) -> Vec<f64> {
+    fn scalar(
+        k: usize,
+        kernels: &[Vec<f32>],
+        blends: &[Vec<f32>],
+        color: &[f32],
+        w: usize,
+        h: usize,
+        linear_means: bool,
+    ) -> Vec<f64> {
         type Img = (Vec<f64>, usize, usize); // [3][h][w]
         let levels = kernels.len();
         let pool = |(x, w, h): &Img| -> Img {
@@ -404,7 +457,14 @@ mod tests {
         };
         let mut cs: Vec<Img> = vec![(color.iter().map(|&v| v as f64).collect(), w, h)];
         for l in 1..levels {
-            let next = pool(&cs[l - 1]);
+            let next = if linear_means {
+                let (x, w, h) = &cs[l - 1];
+                let linear = x.iter().map(|v| v.min(LINEAR_PYRAMID_MAX as f64).exp_m1()).collect();
+                let (means, wc, hc) = pool(&(linear, *w, *h));
+                (means.iter().map(|v| v.ln_1p()).collect(), wc, hc)
+            } else {
+                pool(&cs[l - 1])
+            };
             cs.push(next);
         }
         let mut o = filt(&kernels[levels - 1], &cs[levels - 1]);
@@ -447,10 +507,23 @@ mod tests {
         h: usize,
         core: Rect,
     ) -> Vec<f32> {
+        run_means(k, kernels, blends, color, (w, h), core, false)
+    }
+
+    fn run_means(
+        k: usize,
+        kernels: &[Vec<f32>],
+        blends: &[Vec<f32>],
+        color: &[f32],
+        (w, h): (usize, usize),
+        core: Rect,
+        linear_means: bool,
+    ) -> Vec<f32> {
         let p = Pyramid {
             kernel_size: k,
             kernels: kernels.iter().map(Vec::as_slice).collect(),
             blends: blends.iter().map(Vec::as_slice).collect(),
+            linear_means,
         };
         let mut out = vec![0f32; 3 * core.pixels()];
         reconstruct(&p, color, w, h, core, &mut out);
@@ -466,13 +539,15 @@ mod tests {
                 // Odd multiples of the pooling grid, so every level has odd sides somewhere.
                 let (w, h) = (m * [7, 5, 3, 3, 3][levels - 1], m * [5, 3, 5, 3, 1][levels - 1]);
                 let (kernels, blends, color) = case(&mut rng, k, levels, w, h, 8.0);
-                let want = scalar(k, &kernels, &blends, &color, w, h);
-                let got = run(k, &kernels, &blends, &color, w, h, whole(w, h));
-                for (i, (g, e)) in got.iter().zip(&want).enumerate() {
-                    assert!(
-                        (*g as f64 - e).abs() <= 2e-6 * e.abs().max(1.0),
-                        "k {k}, L {levels}, {w}x{h}, sample {i}: {g} vs {e}"
-                    );
+                for linear in [false, true] {
+                    let want = scalar(k, &kernels, &blends, &color, w, h, linear);
+                    let got = run_means(k, &kernels, &blends, &color, (w, h), whole(w, h), linear);
+                    for (i, (g, e)) in got.iter().zip(&want).enumerate() {
+                        assert!(
+                            (*g as f64 - e).abs() <= 2e-6 * e.abs().max(1.0),
+                            "k {k}, L {levels}, {w}x{h}, linear means {linear}, sample {i}: {g} vs {e}"
+                        );
+                    }
                 }
             }
         }
@@ -483,20 +558,22 @@ mod tests {
         let mut rng = Rng(2);
         let (k, levels, w, h) = (5, 3, 36, 28);
         let (kernels, blends, color) = case(&mut rng, k, levels, w, h, 4.0);
-        let all = run(k, &kernels, &blends, &color, w, h, whole(w, h));
-        for core in [
-            Rect { x: 0, y: 0, w: 1, h: 1 },
-            Rect { x: 5, y: 3, w: 13, h: 11 },
-            Rect { x: 35, y: 27, w: 1, h: 1 },
-            Rect { x: 8, y: 20, w: 28, h: 8 },
-        ] {
-            let part = run(k, &kernels, &blends, &color, w, h, core);
-            for c in 0..3 {
-                for y in 0..core.h {
-                    for x in 0..core.w {
-                        let a = part[c * core.pixels() + y * core.w + x];
-                        let b = all[c * w * h + (core.y + y) * w + core.x + x];
-                        assert_eq!(a, b, "core {core:?}, c{c} ({x},{y})");
+        for linear in [false, true] {
+            let all = run_means(k, &kernels, &blends, &color, (w, h), whole(w, h), linear);
+            for core in [
+                Rect { x: 0, y: 0, w: 1, h: 1 },
+                Rect { x: 5, y: 3, w: 13, h: 11 },
+                Rect { x: 35, y: 27, w: 1, h: 1 },
+                Rect { x: 8, y: 20, w: 28, h: 8 },
+            ] {
+                let part = run_means(k, &kernels, &blends, &color, (w, h), core, linear);
+                for c in 0..3 {
+                    for y in 0..core.h {
+                        for x in 0..core.w {
+                            let a = part[c * core.pixels() + y * core.w + x];
+                            let b = all[c * w * h + (core.y + y) * w + core.x + x];
+                            assert_eq!(a, b, "linear means {linear}, core {core:?}, c{c} ({x},{y})");
+                        }
                     }
                 }
             }

@@ -82,6 +82,7 @@ impl Denoiser for FakeDenoiser {
             input_compression: crate::engine::InputCompression::Graph,
             outputs: crate::engine::Outputs::Kernels,
             precision: crate::engine::Precision::Fp32,
+            specular_pyramid: crate::engine::SpecularPyramid::Log,
         }]
     }
 

@@ -133,6 +133,8 @@ def load_msnet(path: str | os.PathLike) -> tuple[MSNet, dict[str, Any]]:
     ckpt = _read(path, MS_VERSION, legacy_ok=True)
     cfg = dict(ckpt["config"])
     cfg.pop("arch", None)
+    # Checkpoints written before the key existed were trained with the log pyramid.
+    cfg.setdefault("specular_pyramid", "log")
     net = MSNet(**cfg)
     net.load_state_dict(ckpt["state_dict"])
     return net.eval(), ckpt

@@ -51,6 +51,9 @@ META_OUTPUTS = "mcdenoise.outputs"
 # Contract v2 only, optional: `fp32` (absent) or `fp16`, the precision the network computes in
 # (a `filtered` graph's inputs, outputs and reconstruction stay float32).
 META_PRECISION = "mcdenoise.precision"
+# Contract v2 only, optional: `log` (absent) or `linear`, how the reconstruction's specular
+# pyramid averages (recon_ms.color_pyramid).
+META_SPECULAR_PYRAMID = "mcdenoise.specular_pyramid"
 
 _BASE = (
     "normal.R", "normal.G", "normal.B",

@@ -52,7 +52,7 @@ import torch
 
 from .checkpoint import load_msnet
 from .contract import (COLOR_CHANNELS, FEATURES_FULL, META_INPUT_COMPRESSION, META_OUTPUTS, META_PRECISION,
-                       NOCOV_INDICES, feature_names, variant_for)
+                       META_SPECULAR_PYRAMID, NOCOV_INDICES, feature_names, variant_for)
 from .export import read_metadata as read_metadata_v2
 from .export import write_model
 from .model import symlog
@@ -67,10 +67,10 @@ RECON_FP16_FILE = "model-recon-fp16.onnx"
 FP16_TOLERANCE = 5e-3
 FILTERED_OUTPUTS = ("diffuse_filtered", "specular_filtered")
 # The reconstruction's operators, beyond the network's (Shape, Gather, Unsqueeze, Concat: the
-# slices' dynamic bounds).
+# slices' dynamic bounds; Clip and Exp: the linear specular pyramid).
 RECON_OPS = frozenset({"Softmax", "Pad", "Slice", "Mul", "Add", "Sub", "AveragePool", "Sigmoid", "Resize", "Shape",
                        "Gather", "Unsqueeze", "Concat", "Constant", "Cast", "Split", "ConstantOfShape", "Div",
-                       "Reshape", "Transpose"})
+                       "Reshape", "Transpose", "Clip", "Exp"})
 ALLOWED_OPS = frozenset({"Conv", "Relu", "Add", "Concat", "MaxPool", "Resize", "Sign", "Abs", "Log", "Mul", "Constant"})
 _TRACE_HW = (32, 48)
 _VERIFY_SHAPE = (2, 48, 80)
@@ -94,6 +94,7 @@ def metadata_for(model: MSNet, variant: str, compression: str = "engine") -> dic
         "mcdenoise.flops_per_pixel": str(model.flops_per_pixel()),
         "mcdenoise.architecture": model.description(),
         META_INPUT_COMPRESSION: compression,
+        META_SPECULAR_PYRAMID: model.specular_pyramid,
     }
 
 
@@ -162,7 +163,8 @@ class WithReconstruction(torch.nn.Module):
         else:
             outputs = self.net(diffuse, specular, features)
         k, b = split_outputs(outputs, self.net.levels)
-        return tuple(reconstruct_component(k[c], b[c], x[:, :3], filter=filter_plain)
+        pyramids = {"diffuse": "log", "specular": self.net.specular_pyramid}
+        return tuple(reconstruct_component(k[c], b[c], x[:, :3], filter=filter_plain, pyramid=pyramids[c])
                      for c, x in (("diffuse", diffuse), ("specular", specular)))
 
 
@@ -315,6 +317,8 @@ def main(argv=None) -> int:
                     h.weight.mul_(a.head_gain)
     else:
         net, _ = load_msnet(a.checkpoint)
+        if a.specular_pyramid:  # the weights do not depend on it; the checkpoint's unless given
+            net.specular_pyramid = net.config["specular_pyramid"] = a.specular_pyramid
     for v in variants:
         m = net if v == "full" else nocov_from_full(net)
         path = Path(a.out) / v / "model.onnx"

@@ -33,6 +33,7 @@ from torch import nn
 
 from .contract import COLOR_CHANNELS, variant_for
 from .model import ResidualBlock, symlog
+from .recon_ms import PYRAMIDS
 
 COMPONENT_COUNT = 2
 
@@ -55,7 +56,8 @@ class _Pair(nn.Sequential):
         super().__init__(_conv(cin, cout), nn.ReLU(), _conv(cout, cout), nn.ReLU())
 
 
-DEFAULT = dict(ext_width=16, ext_blocks=1, enc=(32, 48, 64, 80), dec=(32, 32, 48, 64), kernel_size=5, levels=5)
+DEFAULT = dict(ext_width=16, ext_blocks=1, enc=(32, 48, 64, 80), dec=(32, 32, 48, 64), kernel_size=5, levels=5,
+               specular_pyramid="linear")
 
 
 class MSNet(nn.Module):
@@ -74,6 +76,7 @@ class MSNet(nn.Module):
         dec: tuple[int, ...] | list[int] = DEFAULT["dec"],
         kernel_size: int = DEFAULT["kernel_size"],
         levels: int = DEFAULT["levels"],
+        specular_pyramid: str = DEFAULT["specular_pyramid"],
     ):
         super().__init__()
         variant_for(in_features)
@@ -82,13 +85,18 @@ class MSNet(nn.Module):
             raise ValueError(f"levels={levels} needs {levels - 1} encoder and decoder widths, got enc={enc} dec={dec}")
         if kernel_size < 1 or kernel_size % 2 == 0:
             raise ValueError(f"kernel_size must be odd and positive, got {kernel_size}")
+        if specular_pyramid not in PYRAMIDS:
+            raise ValueError(f"specular_pyramid must be one of {PYRAMIDS}, got {specular_pyramid!r}")
         self.in_features, self.levels, self.kernel_size = in_features, levels, kernel_size
+        # How the reconstruction's specular pyramid averages (recon_ms.color_pyramid; the
+        # graph does not depend on it, the kernels it learns do).
+        self.specular_pyramid = specular_pyramid
         # Whether forward applies symlog to its inputs (training, validation); an export for
         # the engine turns it off and feeds symlog'd inputs instead. Not part of the weights.
         self.compress_inputs = True
         self.config = dict(
             arch="msnet", in_features=in_features, ext_width=ext_width, ext_blocks=ext_blocks,
-            enc=enc, dec=dec, kernel_size=kernel_size, levels=levels,
+            enc=enc, dec=dec, kernel_size=kernel_size, levels=levels, specular_pyramid=specular_pyramid,
         )
         taps = kernel_size * kernel_size
         self.color_extractor = Extractor(COMPONENT_COUNT * COLOR_CHANNELS, ext_width, ext_blocks)
@@ -220,6 +228,7 @@ class MSNet(nn.Module):
             f"width {c['ext_width']}, {c['ext_blocks']} residual block(s); U-Net {self.levels} levels, "
             f"encoder {c['enc']}, decoder {c['dec']}; {c['kernel_size']}x{c['kernel_size']} kernels per level "
             f"and blends; params {self.param_count()}, receptive radius {self.receptive_radius()}"
+            + ("; specular pyramid of linear means" if self.specular_pyramid == "linear" else "")
         )
 
 
@@ -231,13 +240,18 @@ def add_shape_arguments(parser) -> None:
     parser.add_argument("--dec", default=",".join(map(str, DEFAULT["dec"])), help="decoder widths, levels 0 … L-2")
     parser.add_argument("--kernel-size", type=int, default=DEFAULT["kernel_size"])
     parser.add_argument("--levels", type=int, default=DEFAULT["levels"])
+    parser.add_argument("--specular-pyramid", choices=PYRAMIDS, default=None,
+                        help="how the reconstruction's specular pyramid averages: `linear` (ln(1 + the mean of s), "
+                             f"the default for a new network: {DEFAULT['specular_pyramid']}) or `log` (the mean of "
+                             "ln(1 + s), networks before 2026-11-29); a fine-tune keeps its checkpoint's unless given")
 
 
 def from_arguments(a, in_features: int) -> MSNet:
     """A fresh `MSNet` of the shape given by `add_shape_arguments`' options."""
     return MSNet(in_features=in_features, ext_width=a.ext_width, ext_blocks=a.ext_blocks,
                  enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
-                 kernel_size=a.kernel_size, levels=a.levels)
+                 kernel_size=a.kernel_size, levels=a.levels,
+                 specular_pyramid=a.specular_pyramid or DEFAULT["specular_pyramid"])
 
 
 @torch.no_grad()

@@ -9,6 +9,13 @@ Per component, with `c` the preprocessed noisy color `[N, 3, H, W]`:
 
 `up` is bilinear x2 with half-pixel centres (`align_corners=False`). `reconstruct`
 assembles both components and the final color with v1's inverse transforms.
+
+The specular's color is ln(1 + s). With `specular_pyramid="linear"` (metadata
+`mcdenoise.specular_pyramid`) its levels average s, not ln(1 + s):
+`c_{l+1} = ln(1 + avgpool2x2(e^{c_l} - 1))`. The mean of a log is below the log of the mean
+wherever the samples spread (Jensen), so the log pyramid's coarse levels are darker than the
+color they stand for; at 4 spp on a defocused glossy wall the shipped network's specular
+came out 9 % darker than the reference (docs/training.md, "The specular pyramid").
 """
 
 from __future__ import annotations
@@ -94,15 +101,42 @@ def filter_plain(logits: torch.Tensor, color: torch.Tensor) -> torch.Tensor:
     return out
 
 
+#: The largest ln(1 + s) the linear pyramid takes (s = 5.5e34): e^x stays finite in float32
+#: (the engine clamps the same; real frames never come near it).
+LINEAR_PYRAMID_MAX = 80.0
+
+#: How a component's pyramid averages its color (metadata `mcdenoise.specular_pyramid` for
+#: the specular; the diffuse is always `log`, i.e. averaged as it is given).
+PYRAMIDS = ("log", "linear")
+
+
+def color_pyramid(color: torch.Tensor, levels: int, pyramid: str = "log") -> list[torch.Tensor]:
+    """`color` and its `levels - 1` coarser levels: 2x2 means of the values as given
+    (`log`), or, for a color holding ln(1 + s), ln(1 + the 2x2 means of s) (`linear`)."""
+    if pyramid not in PYRAMIDS:
+        raise ValueError(f"pyramid {pyramid!r}: expected one of {PYRAMIDS}")
+    out = [color]
+    if pyramid == "log":
+        for _ in range(levels - 1):
+            out.append(F.avg_pool2d(out[-1], 2))
+        return out
+    # ONNX has no expm1: an export writes e^x - 1 (an absolute difference below 1e-7 here).
+    x = color.clamp(max=LINEAR_PYRAMID_MAX)
+    linear = torch.exp(x) - 1 if torch.onnx.is_in_onnx_export() else torch.expm1(x)
+    for _ in range(levels - 1):
+        linear = F.avg_pool2d(linear, 2)
+        out.append(torch.log1p(linear))
+    return out
+
+
 def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor,
-                          filter=filter_k) -> torch.Tensor:
-    """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits)."""
+                          filter=filter_k, pyramid: str = "log") -> torch.Tensor:
+    """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits);
+    `pyramid` as in `color_pyramid`."""
     levels = len(kernels)
     if len(blends) != levels - 1:
         raise ValueError(f"{levels} kernel levels need {levels - 1} blends, got {len(blends)}")
-    pyramid = [color]
-    for _ in range(levels - 1):
-        pyramid.append(F.avg_pool2d(pyramid[-1], 2))
+    pyramid = color_pyramid(color, levels, pyramid)
     filtered = [filter(kernels[l], pyramid[l]) for l in range(levels)]
     out = filtered[-1]
     for l in reversed(range(levels - 1)):
@@ -130,14 +164,16 @@ class Reconstruction(NamedTuple):
 
 
 def reconstruct(outputs: Sequence[torch.Tensor], levels: int, diffuse_color: torch.Tensor,
-                specular_color: torch.Tensor, albedo: torch.Tensor) -> Reconstruction:
-    """Both components and the final color from the network's outputs."""
+                specular_color: torch.Tensor, albedo: torch.Tensor, *, specular_pyramid: str) -> Reconstruction:
+    """Both components and the final color from the network's outputs; `specular_pyramid` is
+    the network's (`MSNet.specular_pyramid`)."""
     k, b = split_outputs(outputs, levels)
     d_pre = reconstruct_component(k["diffuse"], b["diffuse"], diffuse_color[:, :3].float())
-    s_pre = reconstruct_component(k["specular"], b["specular"], specular_color[:, :3].float())
+    s_pre = reconstruct_component(k["specular"], b["specular"], specular_color[:, :3].float(),
+                                  pyramid=specular_pyramid)
     d = inverse_diffuse(d_pre, albedo)
     s = inverse_specular(s_pre.clamp(max=80.0))
     return Reconstruction(d_pre, s_pre, d, s, d + s)
 
 
-__all__ = ["Reconstruction", "filter_k", "filter_plain", "reconstruct", "reconstruct_component", "split_outputs", "up2"]
+__all__ = ["PYRAMIDS", "Reconstruction", "color_pyramid", "filter_k", "filter_plain", "reconstruct", "reconstruct_component", "split_outputs", "up2"]

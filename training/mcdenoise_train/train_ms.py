@@ -307,7 +307,8 @@ def reconstructed(net, out: list[torch.Tensor], b: dict[str, torch.Tensor]):
     """The filtered batch from the network's `outputs`."""
     if isinstance(net, Lin2020Pair):
         return _recon_v1(out[0], out[1], b["diffuse"][:, :3], b["specular"][:, :3], b["albedo"])
-    return reconstruct(out, net.levels, b["diffuse"], b["specular"], b["albedo"])
+    return reconstruct(out, net.levels, b["diffuse"], b["specular"], b["albedo"],
+                       specular_pyramid=net.specular_pyramid)
 
 
 def forward(net, b: dict[str, torch.Tensor], autocast: bool):
@@ -549,12 +550,16 @@ def main(argv=None) -> int:
         net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
         a.cov_dropout = 0.0  # the paper's network always has covariance
     elif a.init and a.reshape:
+        source = load_msnet(a.init)[0]
+        a.specular_pyramid = a.specular_pyramid or source.specular_pyramid
         net = from_arguments(a, len(FEATURES_FULL))
-        for note in transplant(load_msnet(a.init)[0], net):
+        for note in transplant(source, net):
             print(f"--reshape: {note}", file=sys.stderr)
         net.train()
     elif a.init:
         net = load_msnet(a.init)[0].train()
+        if a.specular_pyramid:  # the weights do not depend on it: a fine-tune may switch
+            net.specular_pyramid = net.config["specular_pyramid"] = a.specular_pyramid
         if a.blend_shift:
             unshifted = copy.deepcopy(net)
             # A blend at sigmoid(-6) passes almost no gradient, so the levels below it neither

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from mcdenoise_train.contract import FEATURES_FULL, NOCOV_INDICES
 from mcdenoise_train.export_ms import export_onnx, nocov_from_full, read_metadata_v2, verify_onnx
 from mcdenoise_train.msnet import MSNet, pad_to_multiple, transplant
-from mcdenoise_train.recon_ms import filter_k, reconstruct, reconstruct_component, up2
+from mcdenoise_train.recon_ms import color_pyramid, filter_k, reconstruct, reconstruct_component, up2
 
 SMALL = dict(ext_width=4, ext_blocks=1, enc=(6, 6, 8, 8), dec=(6, 6, 8, 8), kernel_size=5, levels=5)
 
@@ -38,7 +38,7 @@ def test_receptive_radius_bounds_the_dependency(y, x):
     net = MSNet(28, **SMALL).eval()
     h = w = 160
     d, s, f = (t.requires_grad_(True) for t in _inputs(1, h, w, seed=y * x))
-    rec = reconstruct(net(d, s, f), net.levels, d, s, torch.rand(1, 3, h, w))
+    rec = reconstruct(net(d, s, f), net.levels, d, s, torch.rand(1, 3, h, w), specular_pyramid=net.specular_pyramid)
     rec.total[0, :, y, x].sum().backward()
     g = d.grad.abs().sum((0, 1)) + s.grad.abs().sum((0, 1)) + f.grad.abs().sum((0, 1))
     ys, xs = torch.nonzero(g > 0, as_tuple=True)
@@ -78,6 +78,52 @@ def test_full_blend_takes_the_coarse_level_low_frequencies():
     blends = [torch.full((1, 1, 16 >> l, 16 >> l), 30.0) for l in range(2)]
     assert torch.allclose(reconstruct_component(kernels, blends, color), color, atol=1e-5)
     assert torch.allclose(up2(F.avg_pool2d(color, 2)).mean(), color.mean(), atol=1e-6)
+
+
+def test_linear_pyramid_averages_the_specular_values():
+    # A specular color holds ln(1 + s): the linear pyramid's levels are ln(1 + the means of
+    # s), the log pyramid's the means of ln(1 + s), which Jensen puts below them.
+    g = torch.Generator().manual_seed(5)
+    s = torch.rand(1, 3, 16, 24, generator=g) ** 4 * 50  # spread like a few bright samples
+    color = torch.log1p(s)
+    lin, log = color_pyramid(color, 4, "linear"), color_pyramid(color, 4, "log")
+    assert torch.equal(lin[0], color) and torch.equal(log[0], color)
+    for l in range(1, 4):
+        want = torch.log1p(F.avg_pool2d(s, 2 ** l))
+        assert torch.allclose(lin[l], want, rtol=1e-5, atol=1e-6)
+        assert torch.allclose(log[l], F.avg_pool2d(color, 2 ** l), rtol=1e-5, atol=1e-6)
+        assert (lin[l] >= log[l] - 1e-6).all() and (lin[l] - log[l]).mean() > 0.1
+    with pytest.raises(ValueError, match="pyramid"):
+        color_pyramid(color, 2, "geometric")
+
+
+def test_specular_pyramid_follows_the_network_and_old_checkpoints_read_as_log(tmp_path):
+    from mcdenoise_train.checkpoint import load_msnet, save_msnet
+
+    net = MSNet(28, **SMALL).eval()
+    assert net.specular_pyramid == "linear" and "linear means" in net.description()
+    with pytest.raises(ValueError, match="specular_pyramid"):
+        MSNet(28, specular_pyramid="median")
+    save_msnet(tmp_path / "new.pt", net)
+    assert load_msnet(tmp_path / "new.pt")[0].specular_pyramid == "linear"
+    # A checkpoint from before the key existed was trained with the log pyramid.
+    ck = torch.load(tmp_path / "new.pt", weights_only=False)
+    del ck["config"]["specular_pyramid"]
+    torch.save(ck, tmp_path / "old.pt")
+    old = load_msnet(tmp_path / "old.pt")[0]
+    assert old.specular_pyramid == "log"
+    export_onnx(old, tmp_path / "full" / "model.onnx", "full")
+    assert read_metadata_v2(tmp_path / "full" / "model.onnx")["mcdenoise.specular_pyramid"] == "log"
+    # The reconstruction follows it: the same outputs filter to a brighter specular with
+    # the linear pyramid wherever a coarse level is blended in.
+    d, s, f = _inputs(1, 32, 48)
+    s[:, :3] = torch.log1p(torch.rand(1, 3, 32, 48, generator=torch.Generator().manual_seed(2)) ** 4 * 50)
+    with torch.no_grad():
+        out = net(d, s, f)
+        a = reconstruct(out, net.levels, d, s, torch.ones(1, 3, 32, 48), specular_pyramid="linear")
+        b = reconstruct(out, net.levels, d, s, torch.ones(1, 3, 32, 48), specular_pyramid="log")
+    assert torch.equal(a.diffuse, b.diffuse)
+    assert (a.specular - b.specular).mean() > 0
 
 
 def test_transplant_into_the_same_shape_copies_the_network():
@@ -185,7 +231,7 @@ def test_export_with_reconstruction_round_trip(tmp_path):
     d, s, f = torch.rand(1, 10, 32, 48, generator=g), torch.rand(1, 10, 32, 48, generator=g), torch.rand(1, 28, 32, 48, generator=g)
     with torch.no_grad():
         k, b = split_outputs(net(d, s, f), net.levels)
-        want = reconstruct_component(k["specular"], b["specular"], s[:, :3]).numpy()
+        want = reconstruct_component(k["specular"], b["specular"], s[:, :3], pyramid=net.specular_pyramid).numpy()
     got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
         ["specular_filtered"], {"diffuse": d.numpy(), "specular": s.numpy(), "features": f.numpy()})[0]
     assert np.abs(got - want).max() <= 1e-4 * max(1.0, np.abs(want).max())

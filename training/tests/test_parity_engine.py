@@ -24,6 +24,8 @@ so the kernels are far from uniform) are exported for both variants. Then:
    plus recon_ms's reconstruction, cropped, and v1's inverse transforms, to 1e-5 relative
    (float32 output; measured: 5e-7). The torch side filters in float32 (recon_ms casts to
    it), so the tolerance covers two float32 reconstructions and onnxruntime against torch.
+   The network's specular pyramid is the default, `linear`; `full-log` is the same network
+   exported with the `log` pyramid of the networks before it.
 5. `beauty`: the `nocov` network exported as the `beauty` variant; `preprocess --variant
    beauty` of the frame with the split equals the torch preprocessing of
    `preprocess.as_beauty` (the training side's view of a beauty-only frame), and `run
@@ -34,6 +36,7 @@ applies at the frame border only: the engine's tiles must take their context fro
 frame (cut at the frame border, not padded) for the two to agree.
 """
 
+import copy
 import os
 import subprocess
 from pathlib import Path
@@ -272,6 +275,14 @@ def case_v2(tmp_path_factory):
     from mcdenoise_train.export_ms import RECON_FILE, export_recon
 
     export_recon(full, root / "models-graph" / "full" / RECON_FILE, "full")
+    # And with the log specular pyramid of the networks before 2026-11-29 (metadata
+    # `mcdenoise.specular_pyramid` `log`; the default since is `linear`).
+    assert full.specular_pyramid == "linear"
+    log = copy.deepcopy(full)
+    log.specular_pyramid = log.config["specular_pyramid"] = "log"
+    nets["full-log"] = log
+    paths["full-log"] = paths["full"]
+    export_v2(log, root / "models-log" / "full" / "model.onnx", "full")
     return dict(root=root, paths=paths, nets=nets, models=root / "models")
 
 
@@ -297,7 +308,7 @@ def test_beauty_inputs_match_the_training_side(request):
 
 
 @pytest.mark.parametrize("variant,compression", [("full", "engine"), ("nocov", "engine"), ("beauty", "engine"),
-                                                 ("full", "graph"), ("full", "graph-recon")])
+                                                 ("full", "graph"), ("full", "graph-recon"), ("full-log", "engine")])
 def test_run_matches_torch_v2(request, variant, compression):
     from mcdenoise_train.msnet import pad_to_multiple
     from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
@@ -305,7 +316,8 @@ def test_run_matches_torch_v2(request, variant, compression):
     exe = require_engine()
     case = request.getfixturevalue("case_v2")
     root, net = case["root"], case["nets"][variant]
-    arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz", "--variant", variant)
+    served = variant.removesuffix("-log")  # full-log: the full variant of models-log
+    arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz", "--variant", served)
     t = lambda k: torch.from_numpy(arrs[k])[None]
     m = net.size_multiple
     assert H2 % m and W2 % m, "the frame should need padding"
@@ -313,10 +325,18 @@ def test_run_matches_torch_v2(request, variant, compression):
     with torch.no_grad():
         outputs = net(pad(t("diffuse_color")), pad(t("specular_color")), pad(t("features")))
         kernels, blends = split_outputs(outputs, net.levels)
+        pyramid = {"diffuse": "log", "specular": net.specular_pyramid}
         pre = {
-            c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3])[..., :H2, :W2].double()
+            c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3],
+                                     pyramid=pyramid[c])[..., :H2, :W2].double()
             for c in COMPONENTS
         }
+        if variant != "beauty":  # (a beauty-only frame has no specular)
+            # The two specular pyramids give different outputs here: each case tells them apart.
+            other = "log" if net.specular_pyramid == "linear" else "linear"
+            other_pre = reconstruct_component(kernels["specular"], blends["specular"],
+                                              pad(t("specular_color"))[:, :3], pyramid=other)[..., :H2, :W2].double()
+            assert (other_pre - pre["specular"]).abs().max() > 1e-2 * pre["specular"].abs().max()
     d = inverse_diffuse(pre["diffuse"], t("albedo").double())[0].numpy()
     s = inverse_specular(pre["specular"])[0].numpy()
     expect = {"": d + s, "diffuse.": d, "specular.": s}
@@ -325,7 +345,8 @@ def test_run_matches_torch_v2(request, variant, compression):
 
     out = root / f"out-{variant}-{compression}.exr"
     models = case["models"] if compression == "engine" else root / "models-graph"
+    models = root / "models-log" if variant == "full-log" else models
     where = "graph" if compression == "graph-recon" else "engine"
     engine(exe, "run", case["paths"][variant], "-o", out, "--models", models, "--reconstruction", where,
-           "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", variant)
+           "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", served)
     _compare_output(out, expect, (H2, W2), float_tol=1e-5)
