@@ -318,7 +318,7 @@ def main(argv=None) -> int:
     else:
         net, _ = load_msnet(a.checkpoint)
         if a.specular_pyramid:  # the weights do not depend on it; the checkpoint's unless given
-            net.specular_pyramid = net.config["specular_pyramid"] = a.specular_pyramid
+            net.specular_pyramid = a.specular_pyramid
     for v in variants:
         m = net if v == "full" else nocov_from_full(net)
         path = Path(a.out) / v / "model.onnx"

@@ -85,19 +85,15 @@ class MSNet(nn.Module):
             raise ValueError(f"levels={levels} needs {levels - 1} encoder and decoder widths, got enc={enc} dec={dec}")
         if kernel_size < 1 or kernel_size % 2 == 0:
             raise ValueError(f"kernel_size must be odd and positive, got {kernel_size}")
-        if specular_pyramid not in PYRAMIDS:
-            raise ValueError(f"specular_pyramid must be one of {PYRAMIDS}, got {specular_pyramid!r}")
         self.in_features, self.levels, self.kernel_size = in_features, levels, kernel_size
-        # How the reconstruction's specular pyramid averages (recon_ms.color_pyramid; the
-        # graph does not depend on it, the kernels it learns do).
-        self.specular_pyramid = specular_pyramid
         # Whether forward applies symlog to its inputs (training, validation); an export for
         # the engine turns it off and feeds symlog'd inputs instead. Not part of the weights.
         self.compress_inputs = True
         self.config = dict(
             arch="msnet", in_features=in_features, ext_width=ext_width, ext_blocks=ext_blocks,
-            enc=enc, dec=dec, kernel_size=kernel_size, levels=levels, specular_pyramid=specular_pyramid,
+            enc=enc, dec=dec, kernel_size=kernel_size, levels=levels,
         )
+        self.specular_pyramid = specular_pyramid
         taps = kernel_size * kernel_size
         self.color_extractor = Extractor(COMPONENT_COUNT * COLOR_CHANNELS, ext_width, ext_blocks)
         self.feature_extractor = Extractor(in_features, ext_width, ext_blocks)
@@ -111,6 +107,19 @@ class MSNet(nn.Module):
         self.kernel_heads = nn.ModuleList(_conv(head_in[l], COMPONENT_COUNT * taps, 1) for l in range(levels))
         self.blend_heads = nn.ModuleList(_conv(head_in[l], COMPONENT_COUNT, 1) for l in range(levels - 1))
         self.reset_parameters()
+
+    @property
+    def specular_pyramid(self) -> str:
+        """How the reconstruction's specular pyramid averages (recon_ms.color_pyramid), kept
+        in `config`. The graph does not depend on it, the kernels it learns do, so a
+        fine-tune or an export may set it."""
+        return self.config["specular_pyramid"]
+
+    @specular_pyramid.setter
+    def specular_pyramid(self, value: str) -> None:
+        if value not in PYRAMIDS:
+            raise ValueError(f"specular_pyramid must be one of {PYRAMIDS}, got {value!r}")
+        self.config["specular_pyramid"] = value
 
     @property
     def size_multiple(self) -> int:

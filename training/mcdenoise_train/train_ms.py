@@ -559,7 +559,7 @@ def main(argv=None) -> int:
     elif a.init:
         net = load_msnet(a.init)[0].train()
         if a.specular_pyramid:  # the weights do not depend on it: a fine-tune may switch
-            net.specular_pyramid = net.config["specular_pyramid"] = a.specular_pyramid
+            net.specular_pyramid = a.specular_pyramid
         if a.blend_shift:
             unshifted = copy.deepcopy(net)
             # A blend at sigmoid(-6) passes almost no gradient, so the levels below it neither

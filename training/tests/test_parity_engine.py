@@ -279,7 +279,7 @@ def case_v2(tmp_path_factory):
     # `mcdenoise.specular_pyramid` `log`; the default since is `linear`).
     assert full.specular_pyramid == "linear"
     log = copy.deepcopy(full)
-    log.specular_pyramid = log.config["specular_pyramid"] = "log"
+    log.specular_pyramid = "log"
     nets["full-log"] = log
     paths["full-log"] = paths["full"]
     export_v2(log, root / "models-log" / "full" / "model.onnx", "full")
