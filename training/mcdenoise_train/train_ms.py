@@ -371,6 +371,15 @@ def scored(net, val: FrameSet, a) -> dict:
     return v
 
 
+def selection_score(v: dict, select: str) -> float:
+    """The score checkpoints are chosen by: the network's with covariance (`full`), or the
+    mean of that and its score without (`both`; frames from most renderers carry no
+    covariance and are served by `nocov`)."""
+    if select == "both" and "nocov" in v:
+        return 0.5 * (v["score"] + v["nocov"]["score"])
+    return v["score"]
+
+
 def baseline(net: MSNet, val: FrameSet, a, out: Path) -> float:
     """Scores the network a fine-tune starts from (`--init`) as step 0 of val.jsonl and keeps
     it as best.pt; returns its score, the one later checkpoints must beat."""
@@ -380,7 +389,7 @@ def baseline(net: MSNet, val: FrameSet, a, out: Path) -> float:
     print(f"validation of {a.init} (the start): RelMSE {v['relmse']:.5f} DSSIM {v['dssim']:.4f}",
           file=sys.stderr, flush=True)
     save_msnet(out / "best.pt", net, step=0, val=v)
-    return v["score"]
+    return selection_score(v, a.select)
 
 
 @torch.no_grad()
@@ -424,6 +433,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--exposure", type=float, default=2.0, help="exposure augmentation range in stops (±)")
     p.add_argument("--fireflies", type=float, default=0.25, help="fraction of patches with injected fireflies")
     p.add_argument("--cov-dropout", type=float, default=0.3, help="fraction of patches with covariance zeroed")
+    p.add_argument("--select", choices=("full", "both"), default="full",
+                   help="the validation score best.pt is chosen by: with covariance (`full`), or the mean of "
+                        "that and the score without it (`both`: `full` and `nocov` alike)")
     p.add_argument("--l1", type=float, default=1.0, help="weight of L1 on log(1 + color)")
     p.add_argument("--ssim", type=float, default=0.0, help="weight of DSSIM of the final color")
     p.add_argument("--relmse", type=float, default=0.0,
@@ -614,12 +626,16 @@ def main(argv=None) -> int:
             a.steps, a.time_budget, fitted = st["steps"], None, True
         sched = schedule(a.steps, done=step)
         print(f"resumed at step {step}", file=sys.stderr)
-        if st.get("val_names") not in (None, list(val.names)) and isinstance(net, MSNet) and (out / "best.pt").exists():
-            # The validation scenes changed since (a data set rendered between the runs):
-            # a score on other frames does not compare, so best.pt is scored on these.
-            best = scored(load_msnet(out / "best.pt")[0].to(dev), val, a)["score"]
-            print(f"validation frames changed ({len(st['val_names'])} -> {len(val)}): best.pt scored "
-                  f"again on them, {best:.3f}", file=sys.stderr, flush=True)
+        frames_changed = st.get("val_names") not in (None, list(val.names))
+        select_changed = st.get("select", "full") != a.select
+        if (frames_changed or select_changed) and isinstance(net, MSNet) and (out / "best.pt").exists():
+            # The validation scenes changed since (a data set rendered between the runs), or
+            # the score that selects: a score on other frames, or another score, does not
+            # compare, so best.pt is scored again.
+            best = selection_score(scored(load_msnet(out / "best.pt")[0].to(dev), val, a), a.select)
+            why = (f"validation frames changed ({len(st['val_names'])} -> {len(val)})" if frames_changed
+                   else f"selection changed ({st.get('select', 'full')} -> {a.select})")
+            print(f"{why}: best.pt scored again, {best:.3f}", file=sys.stderr, flush=True)
     # The weights validated, kept and exported: the trained ones, or their moving average,
     # which starts at the weights the run starts with (a fine-tune averages away from the
     # network it starts from) or, resumed, continues from the saved one.
@@ -644,7 +660,8 @@ def main(argv=None) -> int:
     def save_resume():
         save_state(state_path, model=net.state_dict(), opt=opt.state_dict(), fitted=fitted,
                    ema=ema.state_dict() if ema is not None else None,
-                   step=step, steps=a.steps, best=best, elapsed=time.time() - t0, val_names=list(val.names))
+                   step=step, steps=a.steps, best=best, elapsed=time.time() - t0, val_names=list(val.names),
+                   select=a.select)
 
     stop = False
     t_fit = t_run = t_reload = time.time()
@@ -707,8 +724,8 @@ def main(argv=None) -> int:
             peak = f", largest kernel weight {v['kernel_peak']:.3f}" if "kernel_peak" in v else ""
             print(f"validation at {step}: RelMSE {v['relmse']:.5f} DSSIM {v.get('dssim', float('nan')):.4f} "
                   f"(input {v.get('input_relmse', float('nan')):.4f}){peak}", file=sys.stderr, flush=True)
-            if v["score"] < best:
-                best = v["score"]
+            if selection_score(v, a.select) < best:
+                best = selection_score(v, a.select)
                 if isinstance(judged, Lin2020Pair):
                     save_checkpoint(out / "best.pt", {"diffuse": judged.diffuse, "specular": judged.specular},
                                     step=step, val=v, train_config=vars(a))

@@ -44,10 +44,14 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert "--test-scenes 8 --size 128 --spp 4,16,64 --ref-spp 4096 --renderer mitsuba" in test
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
-    # With Cycles, its test scenes (minutes each) come after the depth-of-field training scenes.
-    lines = _run({**env, "TEST_RENDERER": "both"}, "render").stdout.splitlines()
-    assert len(lines) == 6 and "--seed-base 620000" in lines[3]
-    assert lines[2].endswith("--renderer mitsuba") and lines[4].endswith("--renderer cycles")
+    # With Cycles, its test scenes (minutes each), then its training scenes (every family, at
+    # 256²), before the depth-of-field training scenes.
+    lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5"}, "render").stdout.splitlines()
+    assert len(lines) == 7 and "--seed-base 620000" in lines[5]
+    assert lines[2].endswith("--renderer mitsuba") and lines[3].endswith("--renderer cycles")
+    assert "--test-scenes 8" in lines[3]
+    assert "--scenes 5 --seed-base 630000 --size 256" in lines[4] and lines[4].endswith("--renderer cycles")
+    assert "--families" not in lines[4]
 
 
 def test_split_scenes_names_what_is_missing(tmp_path):
@@ -79,7 +83,8 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     # Paths relative to the repository root, as the defaults are.
     rel = lambda p: os.path.relpath(p, SCRIPT.parents[1])  # noqa: E731
     env = {**os.environ, "PY": sys.executable, "CPU_HOME": rel(home), "RES_A": rel(res_a), "RES_B": rel(res_b),
-           "DOF": str(dof), "HIRES": str(hires), "TEST": str(tmp_path / "no-test"),
+           "DOF": str(dof), "HIRES": str(hires), "CYCLES": str(tmp_path / "no-cycles"),
+           "TEST": str(tmp_path / "no-test"),
            "VAL_SCENES": "a0,b1", "INIT": str(start / "best.pt"), "MODELS": str(tmp_path / "shipped"),
            "RECIPE": "--batch 2 --patch 32 --lr 1e-3 --ema 0.9 --blend-bound 4"}
     subprocess.run([sys.executable, "-m", "mcdenoise_train.export_ms", "--checkpoint", str(start / "best.pt"),

@@ -243,6 +243,28 @@ def test_resume_scores_best_again_when_the_validation_frames_changed(tmp_path, c
     assert -1e9 < load_state(out / "state.pt")["best"] <= scores[-1] + 1e-9
 
 
+def test_selection_by_both_scores(tmp_path, capsys):
+    v = {"score": -10.0, "nocov": {"score": -8.0}}
+    assert train_ms.selection_score(v, "full") == -10.0
+    assert train_ms.selection_score(v, "both") == -9.0
+    assert train_ms.selection_score({"score": -10.0}, "both") == -10.0  # beauty: no nocov row
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    out = tmp_path / "run"
+    small = ["--data", str(root), "--out", str(out), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8",
+             "--patch", "32", "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "2"]
+    assert train_ms.main([*small, "--steps", "2"]) == 0
+    assert load_state(out / "state.pt")["select"] == "full"
+    # Resumed with the other selection, the saved best (a `full` score) does not compare:
+    # best.pt is scored again by the mean of both.
+    capsys.readouterr()
+    assert train_ms.main([*small, "--steps", "4", "--resume", "--select", "both"]) == 0
+    assert "selection changed (full -> both): best.pt scored again" in capsys.readouterr().err
+    rows = [json.loads(l) for l in open(out / "val.jsonl")]
+    state = load_state(out / "state.pt")
+    assert state["select"] == "both"
+    assert state["best"] <= min(train_ms.selection_score(r, "both") for r in rows[1:]) + 1e-9
+
+
 def test_distillation_targets_are_the_teachers_output():
     args = _args(ext_width=4, ext_blocks=1, enc="6,6,8,8", dec="6,6,8,8")
     torch.manual_seed(0)
