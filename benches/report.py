@@ -107,6 +107,18 @@ def speed_section(speed: dict, oidn: dict | None) -> list[str]:
                 f"| mcdenoise engine with EXR decode and encode | {total:.2f} | 1.00 |"]
         for q, r in oidn["quality"].items():
             out.append(f"| OIDN {oidn.get('pyoidn', '')} quality {q} | {r['seconds']:.2f} | {r['seconds'] / total:.2f} |")
+        files = {q: r["file_seconds"] for q, r in oidn["quality"].items() if "file_seconds" in r}
+        if files:
+            out += ["", "The same comparison in like terms: the denoising alone (our engine's stages against "
+                    "OIDN's filter call, neither reading nor writing a file), and EXR file to EXR file "
+                    "(`mcdenoise run` against OpenEXR's read, the filter call and a PIZ float RGB write).", "",
+                    "| measure | mcdenoise (s) | " + " | ".join(f"OIDN {q} (s) | ours / OIDN {q}" for q in files) + " |",
+                    "|---|---|" + "---|---|" * len(files)]
+            alone = " | ".join(f"{oidn['quality'][q]['seconds']:.2f} | {e['engine_s'] / oidn['quality'][q]['seconds']:.2f}"
+                               for q in files)
+            whole = " | ".join(f"{t:.2f} | {total / t:.2f}" for t in files.values())
+            out += [f"| denoising alone | {e['engine_s']:.2f} | {alone} |",
+                    f"| EXR file to EXR file | {total:.2f} | {whole} |"]
     return out
 
 

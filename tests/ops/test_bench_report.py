@@ -41,6 +41,39 @@ def test_the_results_page_shows_int8_against_fp32_from_the_same_run(tmp_path):
     assert "bf16:" in page
 
 
+def test_the_results_page_compares_with_oidn_in_like_terms(tmp_path):
+    if not QUICK.exists():
+        pytest.fail(f"{QUICK} is missing: `make test` writes it before these tests")
+    speed = json.loads(QUICK.read_text())
+    e = speed["engine"]
+    results = tmp_path / "results"
+    results.mkdir()
+    shutil.copy(QUICK, results / "speed.json")
+    oidn = {"width": e["width"], "height": e["height"], "pyoidn": "2.5.1.0",
+            "quality": {"high": {"seconds": 0.5, "file_seconds": 0.8, "runs": 3},
+                        "fast": {"seconds": 0.25, "file_seconds": 0.5, "runs": 3}}}
+    (results / "oidn.json").write_text(json.dumps(oidn))
+    out = tmp_path / "results.md"
+    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
+                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    page = out.read_text()
+    # The denoising alone against the filter call; file to file against read, filter, write.
+    alone = re.search(r"\| denoising alone \| ([\d.]+) \| 0\.50 \| ([\d.]+) \| 0\.25 \| ([\d.]+) \|", page)
+    whole = re.search(r"\| EXR file to EXR file \| ([\d.]+) \| 0\.80 \| ([\d.]+) \| 0\.50 \| ([\d.]+) \|", page)
+    assert alone and whole, page
+    assert float(alone[1]) == round(e["engine_s"], 2) and float(whole[1]) == round(e["engine_with_io_s"], 2)
+    assert float(alone[2]) == pytest.approx(e["engine_s"] / 0.5, abs=0.006)
+    assert float(whole[3]) == pytest.approx(e["engine_with_io_s"] / 0.5, abs=0.006)
+    # An OIDN measurement from before file_seconds: the filter rows only.
+    for q in oidn["quality"].values():
+        del q["file_seconds"]
+    (results / "oidn.json").write_text(json.dumps(oidn))
+    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
+                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and "quality high | 0.50 |" in out.read_text() and "EXR file to EXR" not in out.read_text()
+
+
 def test_the_results_page_shows_the_gpu_run_against_oidn(tmp_path):
     # The committed GPU measurements (docs/results/gpu.json, gpu-split.json): each daemon row
     # with its ratio to OIDN's CUDA time at that size, the parts that failed, the parity.
