@@ -50,7 +50,8 @@ def test_the_results_page_compares_with_oidn_in_like_terms(tmp_path):
     results.mkdir()
     shutil.copy(QUICK, results / "speed.json")
     oidn = {"width": e["width"], "height": e["height"], "pyoidn": "2.5.1.0",
-            "quality": {"high": {"seconds": 0.5, "file_seconds": 0.8, "runs": 3},
+            "quality": {"high": {"seconds": 0.5, "file_seconds": 0.8, "file_read_seconds": 0.12,
+                                 "file_write_seconds": 0.17, "runs": 3},
                         "fast": {"seconds": 0.25, "file_seconds": 0.5, "runs": 3}}}
     (results / "oidn.json").write_text(json.dumps(oidn))
     out = tmp_path / "results.md"
@@ -65,6 +66,7 @@ def test_the_results_page_compares_with_oidn_in_like_terms(tmp_path):
     assert float(alone[1]) == round(e["engine_s"], 2) and float(whole[1]) == round(e["engine_with_io_s"], 2)
     assert float(alone[2]) == pytest.approx(e["engine_s"] / 0.5, abs=0.006)
     assert float(whole[3]) == pytest.approx(e["engine_with_io_s"] / 0.5, abs=0.006)
+    assert "here 0.12 s to read and 0.17 s to write" in page
     # An OIDN measurement from before file_seconds: the filter rows only.
     for q in oidn["quality"].values():
         del q["file_seconds"]
