@@ -45,12 +45,12 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
     # With Cycles, its test scenes (minutes each), then its training scenes (every family, at
-    # 256²), before the depth-of-field training scenes.
+    # the training sets' size), before the depth-of-field training scenes.
     lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5"}, "render").stdout.splitlines()
     assert len(lines) == 7 and "--seed-base 620000" in lines[5]
     assert lines[2].endswith("--renderer mitsuba") and lines[3].endswith("--renderer cycles")
     assert "--test-scenes 8" in lines[3]
-    assert "--scenes 5 --seed-base 630000 --size 256" in lines[4] and lines[4].endswith("--renderer cycles")
+    assert "--scenes 5 --seed-base 630000 --size 384" in lines[4] and lines[4].endswith("--renderer cycles")
     assert "--families" not in lines[4]
 
 
