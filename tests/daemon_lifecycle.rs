@@ -153,7 +153,10 @@ async fn deadlines_fail_slow_jobs_and_expired_jobs_are_removed() {
     )
     .await;
     d.ready().await;
-    let slow = d.submit_ok(&frame(64, 64), "deadline_seconds=1").await;
+    // The slow job (32 tiles of 100 ms) fails at its deadline, 2 s; the job queued behind it
+    // has a deadline a second earlier, so it has expired, by a margin no scheduling delay
+    // eats, before the worker is free to start it.
+    let slow = d.submit_ok(&frame(128, 64), "deadline_seconds=2").await;
     let queued_behind = d.submit_ok(&frame(64, 64), "deadline_seconds=1").await;
     let job = d.wait_state(&slow, "failed").await;
     assert_eq!(job["error"]["code"], "deadline_exceeded", "{job}");
