@@ -724,8 +724,9 @@ def main(argv=None) -> int:
             peak = f", largest kernel weight {v['kernel_peak']:.3f}" if "kernel_peak" in v else ""
             print(f"validation at {step}: RelMSE {v['relmse']:.5f} DSSIM {v.get('dssim', float('nan')):.4f} "
                   f"(input {v.get('input_relmse', float('nan')):.4f}){peak}", file=sys.stderr, flush=True)
-            if selection_score(v, a.select) < best:
-                best = selection_score(v, a.select)
+            score = selection_score(v, a.select)
+            if score < best:
+                best = score
                 if isinstance(judged, Lin2020Pair):
                     save_checkpoint(out / "best.pt", {"diffuse": judged.diffuse, "specular": judged.specular},
                                     step=step, val=v, train_config=vars(a))
