@@ -97,20 +97,29 @@ train: setup-train build
 ## Quality (docs/results.md): the noisy input, the default variant (`full` on frames with
 ## covariance, `nocov` on frames without), `nocov`, `beauty` (each frame as a beauty-only file
 ## gives it: no split, no variances), `lin2020` (frames with covariance only)
-## and OIDN (high, balanced, fast) on the validation scenes of DATA and on the unseen scenes of TEST_DATA (when present), per scene
-## and sample count, with plots and side-by-side crops, and the firefly check (20 injected
-## outliers per frame, with and without the handling; docs/fireflies.md); then quality against
-## time (benches/quality_time.py: seconds per 720p frame on this machine, after make bench).
+## and OIDN (high, balanced, fast), per scene and sample count, with plots and side-by-side
+## crops, and the firefly check (20 injected outliers per frame, with and without the
+## handling; docs/fireflies.md), on each set that is present: the validation scenes that chose
+## the checkpoints (VAL_DATA, split val: scripts/cpu-pipeline's 384² ones), the held-out
+## 384² scenes beside them (HELDOUT_DATA) and the unseen test scenes of both renderers
+## (TEST_DATA); then quality against time (benches/quality_time.py: seconds per 720p frame
+## on this machine, after make bench).
+VAL_DATA ?= runs/cpu/val384
+HELDOUT_DATA ?= runs/cpu/heldout384
 TEST_DATA ?= data-test
 # The data generator's test sets (--test-scenes) carry split `test`; older sets `val`.
 TEST_SPLIT ?= test
 TEST_OUT ?= test-both
+EVAL_SETS = $(VAL_DATA):val:val $(HELDOUT_DATA):test:heldout-384 $(TEST_DATA):$(TEST_SPLIT):$(TEST_OUT)
 EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method beauty=$(CURDIR)/models:beauty --method lin2020=$(CURDIR)/models:lin2020 --oidn --oidn-quality high,balanced,fast --crops 4 --outliers 20
 eval: setup-train build
-	cd training && $(PY) -m mcdenoise_train.evaluate --data $(abspath $(DATA)) --split val $(EVAL_METHODS) \
-	  --out $(CURDIR)/docs/results/val
-	if [ -f $(TEST_DATA)/manifest.jsonl ]; then cd training && $(PY) -m mcdenoise_train.evaluate \
-	  --data $(abspath $(TEST_DATA)) --split $(TEST_SPLIT) $(EVAL_METHODS) --out $(CURDIR)/docs/results/$(TEST_OUT); fi
+	for set in $(EVAL_SETS); do \
+	  dir=$${set%%:*} rest=$${set#*:}; split=$${rest%%:*} out=$${rest#*:}; \
+	  if [ -f $$dir/manifest.jsonl ]; then data=$$(realpath $$dir); \
+	    (cd training && $(PY) -m mcdenoise_train.evaluate --data $$data --split $$split $(EVAL_METHODS) \
+	      --out $(CURDIR)/docs/results/$$out) || exit 1; \
+	  else echo "no $$dir/manifest.jsonl: $$out left out"; fi; \
+	done
 	if [ -f target/bench/frame-1280x720.exr ]; then $(PY) benches/quality_time.py \
 	  --results docs/results/$(TEST_OUT)/results.jsonl --out docs/results/quality-time.json; \
 	  else echo "no target/bench/frame-1280x720.exr (make bench writes it): quality against time left out"; fi

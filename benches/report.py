@@ -268,7 +268,9 @@ def quality_section(results: Path) -> list[str]:
            f"Produced by `{EVAL_CMD}` (training/mcdenoise_train/evaluate.py): every frame denoised by `mcdenoise run` "
            "with the shipped models and by OIDN (pyoidn, HDR, albedo and normal, quality high); metrics computed by "
            "the engine against the reference."]
-    for split, title in (("val", "Validation scenes, both renderers (never trained on; they chose the checkpoints)"),
+    # Each set's results.md opens with what it holds (frames, scenes, size, sample counts, renderers).
+    for split, title in (("val", "Validation scenes (never trained on; they chose the checkpoints)"),
+                         ("heldout-384", "Held-out scenes at 384² (never seen in training or selection)"),
                          ("test-both", "Test scenes, both renderers (never seen in training or selection)"),
                          ("test-256", "Test scenes at 256², rendered on a GPU (never seen in training or selection)")):
         d = results / split

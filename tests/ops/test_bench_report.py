@@ -107,3 +107,22 @@ def test_the_results_page_shows_the_gpu_run_against_oidn(tmp_path):
     rows = [ln for ln in out.read_text().splitlines() if ln.endswith("|  |  |")]
     assert len(rows) == len(gpu["daemon"]) + len(gpu["variants"]), rows
     assert all(ln.startswith(f"| {r['frame']} | ") for ln, r in zip(rows, gpu["daemon"] + gpu["variants"])), rows
+
+
+def test_the_results_page_shows_each_evaluated_set_with_what_it_holds(tmp_path):
+    # make eval writes one directory per set; the page shows those present, in order, each
+    # under its title with the line evaluate opens results.md with (what frames were judged).
+    results = tmp_path / "results"
+    for name, held in (("test-both", "48 frames of 16 scenes from `data-test`"),
+                       ("heldout-384", "18 frames of 6 scenes from `runs/cpu/heldout384`")):
+        (results / name).mkdir(parents=True)
+        (results / name / "results.md").write_text(f"{held} (split `test`).\n\n## Mean over all frames\n\n| m |\n")
+    out = tmp_path / "results.md"
+    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
+                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    page = out.read_text()
+    held = page.index("### Held-out scenes at 384² (never seen in training or selection)\n\n18 frames of 6 scenes")
+    test = page.index("### Test scenes, both renderers (never seen in training or selection)\n\n48 frames of 16 scenes")
+    assert held < test and "#### Mean over all frames" in page
+    assert "### Validation scenes" not in page

@@ -60,7 +60,8 @@ def manifest_frames(data_dir: str | os.PathLike) -> list[dict]:
             if spp != "ref":
                 records.append({"scene": r["scene"], "seed": r.get("seed"), "split": r.get("split", "train"),
                                 "spp": int(spp), "noisy": str(data_dir / frame["path"]),
-                                "reference": str(data_dir / ref)})
+                                "reference": str(data_dir / ref),
+                                **({"renderer": frame["renderer"]} if "renderer" in frame else {})})
     return records
 
 
@@ -171,7 +172,8 @@ def split_scenes(dirs: list[str | os.PathLike], chosen: set[str], chosen_dir: st
         raise ValueError(f"no complete scene {', '.join(sorted(missing))} in {', '.join(map(str, dirs))}")
     counts = []
     for out, split, keep in ((chosen_dir, "val", True), (rest_dir, "test", False)):
-        rows = [{**{k: r.get(k) for k in ("scene", "seed", "spp", "noisy", "reference")}, "split": split}
+        rows = [{**{k: r[k] for k in ("scene", "seed", "spp", "noisy", "reference", "renderer") if k in r},
+                 "split": split}
                 for r in frames if (r["scene"] in chosen) == keep]
         Path(out).mkdir(parents=True, exist_ok=True)
         with atomic_path(Path(out) / "manifest.jsonl") as tmp:

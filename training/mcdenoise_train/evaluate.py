@@ -9,7 +9,8 @@ Each `--method NAME=MODELS_DIR[:VARIANT]` denoises every frame with `mcdenoise r
 high, or the qualities `--oidn-quality` names) on the same frames' color (diffuse + specular). All metrics (RelMSE, DSSIM, PSNR,
 SMAPE) come from the engine (`mcdenoise run --reference` / `mcdenoise metrics`), so every
 method is measured by the same code. Writes `results.jsonl` (one row per frame and
-method) and `results.md` (means per method, per scene and per sample count).
+method) and `results.md` (what frames were judged, then means per method, per scene and per
+sample count).
 
 `--outliers N` adds the firefly check (docs/fireflies.md): N isolated outliers of 10-1000x
 the local level are injected into each frame (variance raised to match, as a renderer's
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .data import engine_binary, manifest_frames
-from .exr import read_exr, write_exr
+from .exr import exr_size, read_exr, write_exr
 from .files import write_jsonl
 
 METRICS = ("relmse", "dssim", "psnr", "smape")
@@ -185,6 +186,28 @@ def outlier_check(r: dict, base: dict, a, tmp: Path, clean: dict[str, float], se
         run_oidn(path, tmp / "oidn-injected.exr", oidn_quality)
         row("oidn", metrics(tmp / "oidn-injected.exr", r["reference"])["relmse"])
     return rows
+
+
+def describe(records: list[dict], data: str, split: str) -> str:
+    """The line results.md opens with: how many frames of how many scenes, from where, at what
+    size, sample counts and renderers (those the manifest names), so that a table is never
+    read as another set's."""
+    scenes = list(dict.fromkeys(r.get("scene", "") for r in records))
+    sizes = sorted({exr_size(r["noisy"]) for r in records})
+    spp = sorted({int(r.get("spp", 0)) for r in records})
+    renderers = sorted({r["renderer"] for r in records if r.get("renderer")})
+    where = Path(data).resolve()
+    try:
+        where = where.relative_to(Path.cwd().resolve().parent)  # from training/, the repository
+    except ValueError:
+        pass
+    def count(n: int, what: str) -> str:
+        return f"{n} {what}" + ("" if n == 1 else "s")
+
+    return (f"{count(len(records), 'frame')} of {count(len(scenes), 'scene')} from `{where}` (split `{split}`), "
+            + ", ".join(f"{w}×{h}" for w, h in sizes)
+            + f", {', '.join(map(str, spp))} spp"
+            + (f", rendered by {' and '.join(renderers)}" if renderers else "") + ".\n\n")
 
 
 def summarize(rows: list[dict]) -> str:
@@ -354,7 +377,7 @@ def main(argv=None) -> int:
                 save_crops(images, out / "crops" / f"{base['scene']}.png")
             print(f"{base['frame']}: " + ", ".join(f"{x['method']} {x['relmse']:.4g}" for x in rows if x["frame"] == base["frame"]), flush=True)
     write_jsonl(out / "results.jsonl", rows)
-    summary = summarize(rows)
+    summary = describe(records, a.data, a.split) + summarize(rows)
     if skipped:
         summary += "\n## Frames a method cannot take (not in its means)\n\n" + "".join(
             f"- {name}: {len(v)} frames, e.g. {v[0]}\n" for name, v in skipped.items())

@@ -130,6 +130,13 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
     return read_frame(path)[0]
 
 
+def exr_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an EXR's data window, from its header alone."""
+    with OpenEXR.File(str(path), header_only=True) as f:
+        lo, hi = f.header()["dataWindow"]
+    return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+
+
 def exr_pixel_types(path: str | os.PathLike) -> dict[str, str]:
     """Stored sample type per channel ('HALF', 'FLOAT' or 'UINT')."""
     with OpenEXR.File(str(path), separate_channels=True) as f:

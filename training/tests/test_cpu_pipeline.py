@@ -44,14 +44,15 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert "--test-scenes 8 --size 128 --spp 4,16,64 --ref-spp 4096 --renderer mitsuba" in test
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
-    # With Cycles, its test scenes (minutes each), then its training scenes (every family, at
-    # the training sets' size), before the depth-of-field training scenes.
+    # With Cycles: the depth-of-field training scenes (minutes each) first, then Cycles' test
+    # scenes and its training scenes (every family, at the training sets' size).
     lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5"}, "render").stdout.splitlines()
-    assert len(lines) == 7 and "--seed-base 620000" in lines[5]
-    assert lines[2].endswith("--renderer mitsuba") and lines[3].endswith("--renderer cycles")
-    assert "--test-scenes 8" in lines[3]
-    assert "--scenes 5 --seed-base 630000 --size 384" in lines[4] and lines[4].endswith("--renderer cycles")
-    assert "--families" not in lines[4]
+    assert len(lines) == 7 and "--seed-base 620000" in lines[3]
+    assert lines[2].endswith("--renderer mitsuba") and lines[4].endswith("--renderer cycles")
+    assert "--test-scenes 8" in lines[4]
+    assert "--scenes 5 --seed-base 630000 --size 384" in lines[5] and lines[5].endswith("--renderer cycles")
+    assert "--families" not in lines[5]
+    assert "--seed-base 600000" in lines[6]
 
 
 def test_split_scenes_names_what_is_missing(tmp_path):
@@ -61,6 +62,8 @@ def test_split_scenes_names_what_is_missing(tmp_path):
     assert [(r["scene"], r["split"]) for r in manifest_frames(tmp_path / "h")] == [("s1", "test")]
     # The records point at the frames where they are (absolute paths), not at copies.
     assert Path(manifest_frames(tmp_path / "h")[0]["noisy"]) == root / "s1-spp8.exr"
+    # The renderer travels with them (evaluate names it).
+    assert manifest_frames(tmp_path / "h")[0]["renderer"] == "mitsuba"
     with pytest.raises(ValueError, match="no complete scene s7"):
         data.split_scenes([root], {"s0", "s7"}, tmp_path / "v2", tmp_path / "h2")
 

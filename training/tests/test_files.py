@@ -115,9 +115,11 @@ def test_atomic_path_keeps_the_old_file_when_the_write_fails(tmp_path):
 def test_manifest_frames_tolerates_a_cut_line_and_keeps_the_last_record(tmp_path):
     rec = {"scene": "s", "seed": 1, "split": "val", "complete": True,
            "frames": {"4": {"path": "val/s/s-spp4.exr"}, "ref": {"path": "val/s/s-ref.exr"}}}
-    again = {**rec, "frames": {**rec["frames"], "8": {"path": "val/s/s-spp8.exr"}}}
+    again = {**rec, "frames": {**rec["frames"], "8": {"path": "val/s/s-spp8.exr", "renderer": "cycles"}}}
     (tmp_path / "manifest.jsonl").write_text(_lines(rec, again) + '{"scene": "t", "fr')
     frames = manifest_frames(tmp_path)
     assert [(f["scene"], f["spp"], f["split"]) for f in frames] == [("s", 4, "val"), ("s", 8, "val")]
     assert frames[1]["noisy"] == str(tmp_path / "val/s/s-spp8.exr")
     assert frames[1]["reference"] == str(tmp_path / "val/s/s-ref.exr")
+    # The frame's renderer where the generator recorded it.
+    assert frames[1]["renderer"] == "cycles" and "renderer" not in frames[0]

@@ -39,7 +39,7 @@ def make_dataset(root, frames=3, size=48):
             write_exr(root / f"s{i}-spp8.exr", ch)
             write_exr(root / f"s{i}-ref.exr", ref)
             split = "val" if i == frames - 1 else "train"
-            m.write(json.dumps({"scene": f"s{i}", "spp": 8, "split": split,
+            m.write(json.dumps({"scene": f"s{i}", "spp": 8, "split": split, "renderer": "mitsuba",
                                 "noisy": f"s{i}-spp8.exr", "reference": f"s{i}-ref.exr"}) + "\n")
     return root
 
@@ -121,7 +121,10 @@ def test_evaluate_compares_input_models_and_oidn(tmp_path):
     # OIDN denoises: it beats the noisy input on the synthetic frame.
     by = {r["method"]: r for r in rows}
     assert by["oidn"]["relmse"] < by["input"]["relmse"]
-    assert "| oidn | 1 |" in (tmp_path / "eval" / "results.md").read_text()
+    md = (tmp_path / "eval" / "results.md").read_text()
+    assert "| oidn | 1 |" in md
+    # It opens by saying what was judged, so that no table is read as another set's.
+    assert md.startswith(f"1 frame of 1 scene from `{root.resolve()}` (split `val`), 48×48, 8 spp, rendered by mitsuba.")
 
 
 @needs_engine
