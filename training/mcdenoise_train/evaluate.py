@@ -333,6 +333,9 @@ def main(argv=None) -> int:
     skipped: dict[str, list[str]] = {}  # method -> frames it cannot take
     crop_scenes = list(dict.fromkeys(r.get("scene", "") for r in records))[: a.crops]
     lowest = {sc: min(r["spp"] for r in records if r.get("scene", "") == sc) for sc in crop_scenes}
+    # The crops of an earlier run into OUT (other scenes, other models) would be shown beside these.
+    for old in (out / "crops").glob("*.png"):
+        old.unlink()
     with tempfile.TemporaryDirectory() as tmp:
         for r in records:
             base = {"scene": r.get("scene", ""), "spp": r.get("spp", 0), "frame": Path(r["noisy"]).name}

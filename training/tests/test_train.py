@@ -128,6 +128,21 @@ def test_evaluate_compares_input_models_and_oidn(tmp_path):
 
 
 @needs_engine
+def test_evaluate_crops_replace_an_earlier_runs(tmp_path):
+    from pathlib import Path
+
+    from mcdenoise_train import evaluate
+
+    root = make_dataset(tmp_path / "d")
+    tiny = Path(__file__).resolve().parents[2] / "tests/fixtures/models/tiny"
+    (tmp_path / "eval" / "crops").mkdir(parents=True)
+    (tmp_path / "eval" / "crops" / "scene-of-another-set.png").write_bytes(b"stale")
+    assert evaluate.main(["--data", str(root), "--method", f"tiny={tiny}", "--crops", "1",
+                          "--out", str(tmp_path / "eval")]) == 0
+    assert sorted(p.name for p in (tmp_path / "eval" / "crops").iterdir()) == ["s2.png"]
+
+
+@needs_engine
 def test_evaluate_leaves_out_frames_a_model_cannot_take(tmp_path):
     """A frame without covariance (e.g. from Cycles) is not `full`'s: that method skips it,
     says so in results.md, and the other methods (the automatic variant among them) run."""
