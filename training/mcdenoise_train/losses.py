@@ -88,11 +88,31 @@ def tonemap(x: torch.Tensor) -> torch.Tensor:
     return torch.log1p(x.clamp(min=0))
 
 
+def level_smape(rec, b: dict, specular_pyramid: str) -> torch.Tensor:
+    """Mean over both components and every coarser pyramid level l ≥ 1 of the SMAPE between
+    the reconstruction of levels l and below (`recon_ms.component_levels`) and the target
+    averaged to that level the way the network's pyramid averages its color
+    (`specular_pyramid`): each level is held to be a denoised image at its own scale, whether
+    or not the blend above it passes it on yet."""
+    from .recon_ms import color_pyramid
+
+    levels = len(rec.diffuse_levels) + 1
+    targets = (color_pyramid(b["diffuse_target"], levels, "log")[1:],
+               color_pyramid(b["specular_target"], levels, specular_pyramid)[1:])
+    terms = [smape(o, t) for outs, tgts in zip((rec.diffuse_levels, rec.specular_levels), targets)
+             for o, t in zip(outs, tgts)]
+    if not terms:
+        raise ValueError("level_smape needs a multi-scale reconstruction (recon_ms.reconstruct) of 2 levels or more")
+    return sum(terms) / len(terms)
+
+
 def ms_loss(rec, b: dict, l1_weight: float = 1.0, ssim_weight: float = 0.0, perceptual=None,
-            perceptual_weight: float = 0.0, relmse_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+            perceptual_weight: float = 0.0, relmse_weight: float = 0.0, level_weight: float = 0.0,
+            specular_pyramid: str = "log") -> tuple[torch.Tensor, dict[str, float]]:
     """SMAPE of both components in their preprocessed domains, L1 of the tonemapped final
-    color, optionally DSSIM of the final color, the perceptual loss on it and RelMSE
-    (`relmse_huber`) of it."""
+    color, optionally DSSIM of the final color, the perceptual loss on it, RelMSE
+    (`relmse_huber`) of it and `level_smape` of the coarser levels (the network's
+    `specular_pyramid`)."""
     d = smape(rec.diffuse_pre, b["diffuse_target"])
     s = smape(rec.specular_pre, b["specular_target"])
     loss = d + s
@@ -113,7 +133,11 @@ def ms_loss(rec, b: dict, l1_weight: float = 1.0, ssim_weight: float = 0.0, perc
         p = perceptual(tonemap(rec.total), tonemap(b["reference"]))
         parts["perceptual"] = float(p.detach())
         loss = loss + perceptual_weight * p
+    if level_weight > 0:
+        lv = level_smape(rec, b, specular_pyramid)
+        parts["levels"] = float(lv.detach())
+        loss = loss + level_weight * lv
     return loss, parts
 
 
-__all__ = ["dssim", "log_l1", "ms_loss", "relmse", "relmse_huber", "smape", "ssim_map", "tonemap"]
+__all__ = ["dssim", "level_smape", "log_l1", "ms_loss", "relmse", "relmse_huber", "smape", "ssim_map", "tonemap"]

@@ -129,21 +129,29 @@ def color_pyramid(color: torch.Tensor, levels: int, pyramid: str = "log") -> lis
     return out
 
 
-def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor,
-                          filter=filter_k, pyramid: str = "log") -> torch.Tensor:
-    """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits);
-    `pyramid` as in `color_pyramid`."""
+def component_levels(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor,
+                     filter=filter_k, pyramid: str = "log") -> list[torch.Tensor]:
+    """One component at every level: `[o_0, o_1, …, o_{L-1}]`, `o_l` the reconstruction of
+    levels l and coarser at 1/2^l of the resolution (`o_0` is the output); arguments as in
+    `reconstruct_component`."""
     levels = len(kernels)
     if len(blends) != levels - 1:
         raise ValueError(f"{levels} kernel levels need {levels - 1} blends, got {len(blends)}")
     pyramid = color_pyramid(color, levels, pyramid)
     filtered = [filter(kernels[l], pyramid[l]) for l in range(levels)]
-    out = filtered[-1]
+    outs = [filtered[-1]]
     for l in reversed(range(levels - 1)):
         a = torch.sigmoid(blends[l].float())
         f = filtered[l]
-        out = f + a * (up2(out) - up2(F.avg_pool2d(f, 2)))
-    return out
+        outs.append(f + a * (up2(outs[-1]) - up2(F.avg_pool2d(f, 2))))
+    return outs[::-1]
+
+
+def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor,
+                          filter=filter_k, pyramid: str = "log") -> torch.Tensor:
+    """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits);
+    `pyramid` as in `color_pyramid`."""
+    return component_levels(kernels, blends, color, filter, pyramid)[0]
 
 
 def split_outputs(outputs: Sequence[torch.Tensor], levels: int):
@@ -161,6 +169,9 @@ class Reconstruction(NamedTuple):
     diffuse: torch.Tensor
     specular: torch.Tensor
     total: torch.Tensor
+    #: Each component's coarser levels `o_1 … o_{L-1}` (`component_levels`), preprocessed domains.
+    diffuse_levels: tuple = ()
+    specular_levels: tuple = ()
 
 
 def reconstruct(outputs: Sequence[torch.Tensor], levels: int, diffuse_color: torch.Tensor,
@@ -168,12 +179,12 @@ def reconstruct(outputs: Sequence[torch.Tensor], levels: int, diffuse_color: tor
     """Both components and the final color from the network's outputs; `specular_pyramid` is
     the network's (`MSNet.specular_pyramid`)."""
     k, b = split_outputs(outputs, levels)
-    d_pre = reconstruct_component(k["diffuse"], b["diffuse"], diffuse_color[:, :3].float())
-    s_pre = reconstruct_component(k["specular"], b["specular"], specular_color[:, :3].float(),
-                                  pyramid=specular_pyramid)
-    d = inverse_diffuse(d_pre, albedo)
-    s = inverse_specular(s_pre.clamp(max=80.0))
-    return Reconstruction(d_pre, s_pre, d, s, d + s)
+    d_levels = component_levels(k["diffuse"], b["diffuse"], diffuse_color[:, :3].float())
+    s_levels = component_levels(k["specular"], b["specular"], specular_color[:, :3].float(),
+                                pyramid=specular_pyramid)
+    d = inverse_diffuse(d_levels[0], albedo)
+    s = inverse_specular(s_levels[0].clamp(max=80.0))
+    return Reconstruction(d_levels[0], s_levels[0], d, s, d + s, tuple(d_levels[1:]), tuple(s_levels[1:]))
 
 
-__all__ = ["PYRAMIDS", "Reconstruction", "color_pyramid", "filter_k", "filter_plain", "reconstruct", "reconstruct_component", "split_outputs", "up2"]
+__all__ = ["PYRAMIDS", "Reconstruction", "color_pyramid", "component_levels", "filter_k", "filter_plain", "reconstruct", "reconstruct_component", "split_outputs", "up2"]

@@ -31,6 +31,12 @@ Recipe:
 - **Blends kept open** (`--blend-bound Z`): a penalty on blend logits beyond ±Z, so that no
   pyramid level's blend saturates at 0 or 1, where it passes almost no gradient and shuts
   the levels below it for good (docs/training.md, "The blends had shut the coarse levels").
+- **Every level a denoiser** (`--level-loss W`): W × the SMAPE of each component's coarser
+  pyramid levels (the reconstruction of level l and below, at 1/2^l of the resolution)
+  against the target averaged to that level (`losses.level_smape`), so that the coarse
+  kernels learn to denoise even while the blend above them is shut, and a blend that opens
+  lets in a filtered image rather than an untrained one (docs/training.md, "Every level a
+  denoiser").
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine; by default 2e-3 for the
   production network, 5e-5 for the paper's, `PEAK_LR`), bf16 autocast on CUDA; with
   `--ema D`, an exponential moving average of the weights (decay D per step, from the
@@ -477,6 +483,9 @@ def parse(argv=None) -> argparse.Namespace:
                         "no pyramid level's blend saturates and stops passing gradient (docs/training.md)")
     p.add_argument("--blend-penalty", type=float, default=0.01, metavar="W",
                    help="weight of the --blend-bound penalty (mean squared excess of the logits beyond the bound)")
+    p.add_argument("--level-loss", type=float, default=0.0, metavar="W",
+                   help="add W x the SMAPE of every coarser pyramid level's reconstruction against the target "
+                        "averaged to that level (losses.level_smape; 0: off)")
     p.add_argument("--teacher", default=None,
                    help="distil from this msnet checkpoint: the loss also compares the output with the teacher's "
                         "on the same patch (weight --distill)")
@@ -519,6 +528,10 @@ def main(argv=None) -> int:
         raise SystemExit(f"--blend-bound {a.blend_bound} --blend-penalty {a.blend_penalty}: neither may be negative")
     if a.blend_bound > 0 and a.arch != "msnet":
         raise SystemExit("--blend-bound bounds the production network's blends (--arch msnet); lin2020 has none")
+    if a.level_loss < 0:
+        raise SystemExit(f"--level-loss {a.level_loss}: may not be negative")
+    if a.level_loss > 0 and a.arch != "msnet":
+        raise SystemExit("--level-loss weighs the production network's pyramid levels (--arch msnet); lin2020 has none")
     if a.teacher and a.arch != "msnet":
         raise SystemExit("--teacher distils into the production network (--arch msnet)")
     if a.lr is None:
@@ -681,7 +694,8 @@ def main(argv=None) -> int:
         out_b = outputs(net, b, autocast)
         rec = reconstructed(net, out_b, b)
         loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual,
-                                     perceptual_weight=a.perceptual, relmse_weight=a.relmse)
+                                     perceptual_weight=a.perceptual, relmse_weight=a.relmse,
+                                     level_weight=a.level_loss, specular_pyramid=getattr(net, "specular_pyramid", "log"))
         if a.blend_bound > 0:
             excess = blend_excess(out_b, net.levels, a.blend_bound)
             parts["blend_excess"] = float(excess.detach())

@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from mcdenoise_train.contract import FEATURES_FULL, NOCOV_INDICES
 from mcdenoise_train.export_ms import export_onnx, nocov_from_full, read_metadata_v2, verify_onnx
 from mcdenoise_train.msnet import MSNet, pad_to_multiple, transplant
-from mcdenoise_train.recon_ms import color_pyramid, filter_k, reconstruct, reconstruct_component, up2
+from mcdenoise_train.recon_ms import color_pyramid, component_levels, filter_k, reconstruct, reconstruct_component, up2
 
 SMALL = dict(ext_width=4, ext_blocks=1, enc=(6, 6, 8, 8), dec=(6, 6, 8, 8), kernel_size=5, levels=5)
 
@@ -78,6 +78,25 @@ def test_full_blend_takes_the_coarse_level_low_frequencies():
     blends = [torch.full((1, 1, 16 >> l, 16 >> l), 30.0) for l in range(2)]
     assert torch.allclose(reconstruct_component(kernels, blends, color), color, atol=1e-5)
     assert torch.allclose(up2(F.avg_pool2d(color, 2)).mean(), color.mean(), atol=1e-6)
+
+
+def test_component_levels_are_each_levels_reconstruction():
+    # o_{L-1} is the coarsest level filtered, o_l the level l filtered with the coarser
+    # result blended in, o_0 the component's output.
+    g = torch.Generator().manual_seed(6)
+    color = torch.rand(1, 3, 16, 24, generator=g)
+    kernels = [torch.randn(1, 9, 16 >> l, 24 >> l, generator=g) for l in range(3)]
+    blends = [torch.randn(1, 1, 16 >> l, 24 >> l, generator=g) for l in range(2)]
+    outs = component_levels(kernels, blends, color)
+    assert [tuple(o.shape[-2:]) for o in outs] == [(16, 24), (8, 12), (4, 6)]
+    assert torch.equal(outs[0], reconstruct_component(kernels, blends, color))
+    assert torch.allclose(outs[2], filter_k(kernels[2], F.avg_pool2d(color, 4)), atol=1e-6)
+    f1 = filter_k(kernels[1], F.avg_pool2d(color, 2))
+    want1 = f1 + torch.sigmoid(blends[1]) * (up2(outs[2]) - up2(F.avg_pool2d(f1, 2)))
+    assert torch.allclose(outs[1], want1, atol=1e-6)
+    rec = reconstruct([torch.cat([k, k], 1) for k in kernels] + [torch.cat([b, b], 1) for b in blends], 3,
+                      color, color, torch.ones_like(color), specular_pyramid="log")
+    assert len(rec.diffuse_levels) == 2 and torch.equal(rec.diffuse_levels[0], outs[1])
 
 
 def test_linear_pyramid_averages_the_specular_values():

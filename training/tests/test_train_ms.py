@@ -500,3 +500,27 @@ def test_relmse_weight_enters_the_loss_and_the_log(tmp_path):
     assert train_ms.main([*small, "--out", str(plain), "--steps", "20", "--init", str(start / "best.pt")]) == 0
     plain_rows = [json.loads(line) for line in open(plain / "log.jsonl") if '"loss"' in line]
     assert plain_rows and all("relmse" not in r for r in plain_rows)
+
+
+def test_level_loss_holds_every_coarser_level_to_the_averaged_target(tmp_path):
+    from mcdenoise_train.recon_ms import Reconstruction, color_pyramid
+
+    g = torch.Generator().manual_seed(7)
+    b = {"diffuse_target": torch.rand(1, 3, 16, 16, generator=g),
+         "specular_target": torch.log1p(torch.rand(1, 3, 16, 16, generator=g) ** 4 * 20)}
+    dl, sl = color_pyramid(b["diffuse_target"], 3, "log"), color_pyramid(b["specular_target"], 3, "linear")
+    rec = Reconstruction(dl[0], sl[0], None, None, None, tuple(dl[1:]), tuple(sl[1:]))
+    assert float(train_ms.losses.level_smape(rec, b, "linear")) == pytest.approx(0.0, abs=1e-6)
+    # The specular's levels are held to its own pyramid: the log pyramid's means are not those.
+    assert float(train_ms.losses.level_smape(rec, b, "log")) > 0.01
+    worse = rec._replace(diffuse_levels=(dl[1] * 1.5, dl[2]))
+    assert float(train_ms.losses.level_smape(worse, b, "linear")) > 0.01
+    # In training: the weight enters the loss and the log; the option is the production network's.
+    small, start = _tiny_start(tmp_path)
+    run = tmp_path / "levels"
+    assert train_ms.main([*small, "--out", str(run), "--steps", "20", "--init", str(start / "best.pt"),
+                          "--level-loss", "0.5"]) == 0
+    rows = [json.loads(line) for line in open(run / "log.jsonl") if '"loss"' in line]
+    assert rows and all(np.isfinite(r["levels"]) and r["levels"] > 0 for r in rows)
+    with pytest.raises(SystemExit, match="lin2020 has none"):
+        train_ms.main([*small, "--out", str(tmp_path / "x"), "--steps", "1", "--arch", "lin2020", "--level-loss", "1"])
