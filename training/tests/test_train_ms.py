@@ -489,17 +489,21 @@ def test_relmse_loss_is_the_metric_within_delta_and_linear_beyond():
     assert float(x.grad[0, 0, 1, 1]) == pytest.approx(2 * 10 / math.sqrt(0.02) / x.numel(), rel=1e-4)
 
 
-def test_relmse_weight_enters_the_loss_and_the_log(tmp_path):
-    small, start = _tiny_start(tmp_path)
-    run = tmp_path / "rel"
-    assert train_ms.main([*small, "--out", str(run), "--steps", "20", "--init", str(start / "best.pt"),
-                          "--relmse", "1"]) == 0
+def _logged_rows(tiny, run, *options: str) -> list[dict]:
+    """The training log's rows of 20 steps into `run` from the tiny start (`_tiny_start`'s
+    pair) with `options`."""
+    small, start = tiny
+    assert train_ms.main([*small, "--out", str(run), "--steps", "20", "--init", str(start / "best.pt"), *options]) == 0
     rows = [json.loads(line) for line in open(run / "log.jsonl") if '"loss"' in line]
-    assert rows and all(np.isfinite(r["relmse"]) and r["relmse"] > 0 for r in rows)
-    plain = tmp_path / "plain"
-    assert train_ms.main([*small, "--out", str(plain), "--steps", "20", "--init", str(start / "best.pt")]) == 0
-    plain_rows = [json.loads(line) for line in open(plain / "log.jsonl") if '"loss"' in line]
-    assert plain_rows and all("relmse" not in r for r in plain_rows)
+    assert rows
+    return rows
+
+
+def test_relmse_weight_enters_the_loss_and_the_log(tmp_path):
+    tiny = _tiny_start(tmp_path)
+    rows = _logged_rows(tiny, tmp_path / "rel", "--relmse", "1")
+    assert all(np.isfinite(r["relmse"]) and r["relmse"] > 0 for r in rows)
+    assert all("relmse" not in r for r in _logged_rows(tiny, tmp_path / "plain"))
 
 
 def test_level_loss_holds_every_coarser_level_to_the_averaged_target(tmp_path):
@@ -516,11 +520,8 @@ def test_level_loss_holds_every_coarser_level_to_the_averaged_target(tmp_path):
     worse = rec._replace(diffuse_levels=(dl[1] * 1.5, dl[2]))
     assert float(train_ms.losses.level_smape(worse, b, "linear")) > 0.01
     # In training: the weight enters the loss and the log; the option is the production network's.
-    small, start = _tiny_start(tmp_path)
-    run = tmp_path / "levels"
-    assert train_ms.main([*small, "--out", str(run), "--steps", "20", "--init", str(start / "best.pt"),
-                          "--level-loss", "0.5"]) == 0
-    rows = [json.loads(line) for line in open(run / "log.jsonl") if '"loss"' in line]
-    assert rows and all(np.isfinite(r["levels"]) and r["levels"] > 0 for r in rows)
+    tiny = _tiny_start(tmp_path)
+    assert all(np.isfinite(r["levels"]) and r["levels"] > 0 for r in _logged_rows(tiny, tmp_path / "levels", "--level-loss", "0.5"))
+    small, _ = tiny
     with pytest.raises(SystemExit, match="lin2020 has none"):
         train_ms.main([*small, "--out", str(tmp_path / "x"), "--steps", "1", "--arch", "lin2020", "--level-loss", "1"])
