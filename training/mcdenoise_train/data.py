@@ -29,9 +29,13 @@ ARRAYS = ("diffuse_color", "specular_color", "features", "albedo", "noisy",
           "diffuse_target", "specular_target", "reference")
 
 
+#: The repository this package lies in (training/mcdenoise_train/ below it).
+REPOSITORY = Path(__file__).resolve().parents[2]
+
+
 def engine_binary() -> str:
     """The `mcdenoise` binary: $MCDENOISE_BIN, else target/release/mcdenoise of the repository."""
-    path = os.environ.get("MCDENOISE_BIN") or str(Path(__file__).resolve().parents[2] / "target/release/mcdenoise")
+    path = os.environ.get("MCDENOISE_BIN") or str(REPOSITORY / "target/release/mcdenoise")
     if not Path(path).is_file():
         raise FileNotFoundError(f"mcdenoise binary not found at {path}: run `make build` or set MCDENOISE_BIN")
     return path

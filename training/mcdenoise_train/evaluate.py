@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import engine_binary, manifest_frames
+from .data import REPOSITORY, engine_binary, manifest_frames
 from .exr import exr_size, read_exr, write_exr
 from .files import write_jsonl
 
@@ -197,10 +197,9 @@ def describe(records: list[dict], data: str, split: str) -> str:
     spp = sorted({int(r.get("spp", 0)) for r in records})
     renderers = sorted({r["renderer"] for r in records if r.get("renderer")})
     where = Path(data).resolve()
-    try:
-        where = where.relative_to(Path.cwd().resolve().parent)  # from training/, the repository
-    except ValueError:
-        pass
+    if where.is_relative_to(REPOSITORY):
+        where = where.relative_to(REPOSITORY)
+
     def count(n: int, what: str) -> str:
         return f"{n} {what}" + ("" if n == 1 else "s")
 

@@ -127,6 +127,22 @@ def test_evaluate_compares_input_models_and_oidn(tmp_path):
     assert md.startswith(f"1 frame of 1 scene from `{root.resolve()}` (split `val`), 48×48, 8 spp, rendered by mitsuba.")
 
 
+def test_evaluate_names_a_set_inside_the_repository_by_its_relative_path():
+    from mcdenoise_train import evaluate
+    from mcdenoise_train.data import REPOSITORY
+    from mcdenoise_train.exr import exr_size
+
+    frames = REPOSITORY / "tests" / "fixtures" / "frames"
+    records = [{"scene": "caustic", "spp": 8, "noisy": str(frames / "caustic-spp8.exr")},
+               {"scene": "cornell", "spp": 8, "noisy": str(frames / "cornell-nocov-spp8.exr")}]
+    sizes = ", ".join(f"{w}×{h}" for w, h in sorted({exr_size(r["noisy"]) for r in records}))
+    line = evaluate.describe(records, str(frames), "val")
+    # Frames of two sizes: both named.
+    assert line.startswith(f"2 frames of 2 scenes from `tests/fixtures/frames` (split `val`), {sizes}, ")
+    assert sizes.count("×") == 2
+    assert line.endswith(", 8 spp.\n\n") and "rendered by" not in line
+
+
 @needs_engine
 def test_evaluate_crops_replace_an_earlier_runs(tmp_path):
     from pathlib import Path
