@@ -101,16 +101,17 @@ train: setup-train build
 ## crops, and the firefly check (20 injected outliers per frame, with and without the
 ## handling; docs/fireflies.md), on each set that is present: the validation scenes that chose
 ## the checkpoints (VAL_DATA, split val: scripts/cpu-pipeline's 384² ones), the held-out
-## 384² scenes beside them (HELDOUT_DATA) and the unseen test scenes of both renderers
-## (TEST_DATA); then quality against time (benches/quality_time.py: seconds per 720p frame
+## 384² scenes beside them (HELDOUT_DATA), Cycles' held-out 384² scenes (HELDOUT_C_DATA)
+## and the unseen test scenes of both renderers (TEST_DATA); then quality against time (benches/quality_time.py: seconds per 720p frame
 ## on this machine, after make bench).
 VAL_DATA ?= runs/cpu/val384
 HELDOUT_DATA ?= runs/cpu/heldout384
+HELDOUT_C_DATA ?= runs/cpu/heldout384c
 TEST_DATA ?= data-test
 # The data generator's test sets (--test-scenes) carry split `test`; older sets `val`.
 TEST_SPLIT ?= test
 TEST_OUT ?= test-both
-EVAL_SETS = $(VAL_DATA):val:val $(HELDOUT_DATA):test:heldout-384 $(TEST_DATA):$(TEST_SPLIT):$(TEST_OUT)
+EVAL_SETS = $(VAL_DATA):val:val $(HELDOUT_DATA):test:heldout-384 $(HELDOUT_C_DATA):test:heldout-384-cycles $(TEST_DATA):$(TEST_SPLIT):$(TEST_OUT)
 EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method beauty=$(CURDIR)/models:beauty --method lin2020=$(CURDIR)/models:lin2020 --oidn --oidn-quality high,balanced,fast --crops 4 --outliers 20
 eval: setup-train build
 	for set in $(EVAL_SETS); do \

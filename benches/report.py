@@ -271,6 +271,8 @@ def quality_section(results: Path) -> list[str]:
     # Each set's results.md opens with what it holds (frames, scenes, size, sample counts, renderers).
     for split, title in (("val", "Validation scenes (never trained on; they chose the checkpoints)"),
                          ("heldout-384", "Held-out scenes at 384² (never seen in training or selection)"),
+                         ("heldout-384-cycles",
+                          "Held-out Cycles scenes at 384² (never seen in training or selection)"),
                          ("test-both", "Test scenes, both renderers (never seen in training or selection)"),
                          ("test-256", "Test scenes at 256², rendered on a GPU (never seen in training or selection)")):
         d = results / split

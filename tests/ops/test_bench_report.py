@@ -114,7 +114,8 @@ def test_the_results_page_shows_each_evaluated_set_with_what_it_holds(tmp_path):
     # under its title with the line evaluate opens results.md with (what frames were judged).
     results = tmp_path / "results"
     for name, held in (("test-both", "48 frames of 16 scenes from `data-test`"),
-                       ("heldout-384", "18 frames of 6 scenes from `runs/cpu/heldout384`")):
+                       ("heldout-384", "18 frames of 6 scenes from `runs/cpu/heldout384`"),
+                       ("heldout-384-cycles", "9 frames of 3 scenes from `runs/cpu/heldout384c`")):
         (results / name).mkdir(parents=True)
         (results / name / "results.md").write_text(f"{held} (split `test`).\n\n## Mean over all frames\n\n| m |\n")
     out = tmp_path / "results.md"
@@ -124,5 +125,6 @@ def test_the_results_page_shows_each_evaluated_set_with_what_it_holds(tmp_path):
     page = out.read_text()
     held = page.index("### Held-out scenes at 384² (never seen in training or selection)\n\n18 frames of 6 scenes")
     test = page.index("### Test scenes, both renderers (never seen in training or selection)\n\n48 frames of 16 scenes")
-    assert held < test and "#### Mean over all frames" in page
+    cycles = page.index("### Held-out Cycles scenes at 384² (never seen in training or selection)\n\n9 frames of 3")
+    assert held < cycles < test and "#### Mean over all frames" in page
     assert "### Validation scenes" not in page

@@ -25,6 +25,11 @@ def _run(env, *args, ok=True, timeout=600):
     return res
 
 
+def out_err(env, *args):
+    res = _run(env, *args)
+    return res.stdout + res.stderr
+
+
 def _renamed(root: Path, prefix: str, split: str) -> Path:
     """`root`'s flat manifest with every scene renamed `prefix<n>` and every frame in `split`."""
     rows = [json.loads(line) for line in (root / "manifest.jsonl").read_text().splitlines()]
@@ -45,14 +50,31 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
     # With Cycles: the depth-of-field training scenes (minutes each) first, then Cycles' test
-    # scenes and its training scenes (every family, at the training sets' size).
+    # scenes, its judging scenes (the families where its test frames lose most to OIDN) and its
+    # training scenes (every family, at the training sets' size).
     lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5"}, "render").stdout.splitlines()
-    assert len(lines) == 7 and "--seed-base 620000" in lines[3]
+    assert len(lines) == 8 and "--seed-base 620000" in lines[3]
     assert lines[2].endswith("--renderer mitsuba") and lines[4].endswith("--renderer cycles")
     assert "--test-scenes 8" in lines[4]
-    assert "--scenes 5 --seed-base 630000 --size 384" in lines[5] and lines[5].endswith("--renderer cycles")
-    assert "--families" not in lines[5]
-    assert "--seed-base 600000" in lines[6]
+    assert "--scenes 6 --seed-base 520988 --size 384 --spp 4,16,64 --ref-spp 2048" in lines[5]
+    assert lines[5].endswith("--renderer cycles --families dof,caustics,metals,interior,room")
+    assert "--scenes 5 --seed-base 630000 --size 384" in lines[6] and lines[6].endswith("--renderer cycles")
+    assert "--families" not in lines[6]
+    assert "--seed-base 600000" in lines[7]
+
+
+def test_the_cycles_judging_seeds_give_the_scenes_the_pipeline_names():
+    # VAL_C_SCENES names scenes by family and seed; the family is drawn from the seed, so the
+    # names hold only while the generator draws them so.
+    from mcdenoise_train.datagen.dataset import _spec_of
+
+    text = SCRIPT.read_text()
+    seed = int(text.split("JUDGE_C_SEED=")[1].split()[0])
+    families = text.split("JUDGE_C_FAMILIES=")[1].split()[0].split(",")
+    val = text.split("VAL_C_SCENES=${VAL_C_SCENES:-")[1].split("}")[0].split(",")
+    names = [_spec_of(seed + i, families)["name"] + "-cycles" for i in range(6)]
+    assert names[:3] == val
+    assert sorted(n.split("-")[0] for n in names) == ["caustics", "caustics", "dof", "dof", "interior", "metals"]
 
 
 def test_split_scenes_names_what_is_missing(tmp_path):
@@ -86,7 +108,7 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     # Paths relative to the repository root, as the defaults are.
     rel = lambda p: os.path.relpath(p, SCRIPT.parents[1])  # noqa: E731
     env = {**os.environ, "PY": sys.executable, "CPU_HOME": rel(home), "RES_A": rel(res_a), "RES_B": rel(res_b),
-           "DOF": str(dof), "HIRES": str(hires), "CYCLES": str(tmp_path / "no-cycles"),
+           "DOF": str(dof), "HIRES": str(hires), "CYCLES": str(tmp_path / "no-cycles"), "RES_C": str(tmp_path / "res-c"),
            "TEST": str(tmp_path / "no-test"),
            "VAL_SCENES": "a0,b1", "INIT": str(start / "best.pt"), "MODELS": str(tmp_path / "shipped"),
            "RECIPE": "--batch 2 --patch 32 --lr 1e-3 --ema 0.9 --blend-bound 4"}
@@ -100,6 +122,7 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     assert "2 validation frames" in out and "4 judging frames" in out
     assert {r["scene"] for r in manifest_frames(home / "val384")} == {"a0", "b1"}
     assert {r["scene"] for r in manifest_frames(home / "heldout384")} == {"a1", "a2", "b0", "b2"}
+    assert "no " + str(tmp_path / "res-c") + "/manifest.jsonl yet" in out_err(env, "split")
 
     _run(env, "train", "r", "60", "--steps", "2", "--val-every", "1")
     config = json.loads((home / "r" / "config.json").read_text())
@@ -112,12 +135,27 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     # Run again, it resumes (the schedule's state is there) and goes no further.
     assert "resumed at step 2" in _run(env, "train", "r", "60", "--steps", "2").stderr
 
+    # Cycles' judging scenes: split once its validation scenes are complete; a new run selects
+    # on them too, a run that started without them resumes without them.
+    res_c = _renamed(make_dataset(tmp_path / "res-c", frames=3, size=48), "c", "train")
+    assert "not all rendered yet" in out_err({**env, "VAL_C_SCENES": "c0,c7"}, "split")
+    assert not (home / "val384c").exists()
+    _run({**env, "VAL_C_SCENES": "c0"}, "split")
+    assert {r["scene"] for r in manifest_frames(home / "val384c")} == {"c0"}
+    assert {r["scene"] for r in manifest_frames(home / "heldout384c")} == {"c1", "c2"}
+    assert "resumed without " + str(home / "val384c") in _run(env, "train", "r", "60", "--steps", "2").stderr
+    _run(env, "train", "r2", "60", "--steps", "1", "--val-every", "1")
+    config = json.loads((home / "r2" / "config.json").read_text())
+    assert config["data"] == [str(dof), str(hires), str(home / "val384"), str(home / "val384c")]
+    assert "resumed at step 1" in _run(env, "train", "r2", "60", "--steps", "1").stderr
+
     res = _run(env, "judge", "r")
     assert "no-test/manifest.jsonl, skipped" in res.stderr
     results = (home / "r" / "judge-heldout384" / "results.md").read_text()
     for method in ("input", "r", "shipped"):
         assert f"| {method} | 4 |" in results, results
     assert "| r | 4 |" in res.stderr and "| shipped | 4 |" in res.stderr
+    assert "| r | 2 |" in (home / "r" / "judge-heldout384c" / "results.md").read_text()
     assert (home / "r" / "models" / "full" / "model.onnx").is_file()
 
     # VARIANT=beauty: exported as the beauty variant, and both judged as it (every frame as a
