@@ -64,6 +64,13 @@ def _gaussian(device, dtype, radius: int = 5, sigma: float = 1.5) -> torch.Tenso
 
 def ssim_map(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     """Per-pixel SSIM of [N, C, H, W] images clamped to [0, 1] (valid region)."""
+    luminance, contrast_structure = _ssim_terms(x, r)
+    return luminance * contrast_structure
+
+
+def _ssim_terms(x: torch.Tensor, r: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """SSIM's luminance term and its contrast-structure term, per pixel (valid region), of
+    images clamped to [0, 1]."""
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     x, r = x.clamp(0, 1), r.clamp(0, 1)
     c = x.shape[1]
@@ -76,11 +83,39 @@ def ssim_map(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
 
     ma, mb = blur(x), blur(r)
     va, vb, cov = blur(x * x) - ma * ma, blur(r * r) - mb * mb, blur(x * r) - ma * mb
-    return ((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma * ma + mb * mb + c1) * (va + vb + c2))
+    return (2 * ma * mb + c1) / (ma * ma + mb * mb + c1), (2 * cov + c2) / (va + vb + c2)
 
 
 def dssim(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     return 1.0 - ssim_map(x, r).mean()
+
+
+# Wang, Simoncelli and Bovik 2003: the exponents of the five scales, finest first.
+MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+
+
+def ms_ssim(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+    """Multi-scale SSIM of [N, C, H, W] images clamped to [0, 1], one value per image: the
+    contrast-structure term at each scale but the coarsest, the whole SSIM there, each to its
+    exponent (MS_SSIM_WEIGHTS), halving the images by 2x2 means between scales. Images too
+    small for five scales (the 11-pixel window at the coarsest) use the scales they have,
+    their exponents renormalised. Each scale's mean is floored at 1e-4, so that a fractional
+    power stays real."""
+    x, r = x.clamp(0, 1), r.clamp(0, 1)
+    scales = 1
+    while scales < len(MS_SSIM_WEIGHTS) and min(x.shape[-2:]) >> scales >= 11:
+        scales += 1
+    if min(x.shape[-2:]) < 11:
+        raise ValueError(f"ms_ssim needs images of at least 11x11, got {tuple(x.shape[-2:])}")
+    w = torch.tensor(MS_SSIM_WEIGHTS[:scales], device=x.device, dtype=x.dtype)
+    w = w / w.sum()
+    out = torch.ones(x.shape[0], device=x.device, dtype=x.dtype)
+    for i in range(scales):
+        luminance, cs = _ssim_terms(x, r)
+        term = cs if i < scales - 1 else luminance * cs
+        out = out * term.mean((1, 2, 3)).clamp_min(1e-4) ** w[i]
+        x, r = F.avg_pool2d(x, 2), F.avg_pool2d(r, 2)
+    return out
 
 
 def tonemap(x: torch.Tensor) -> torch.Tensor:
@@ -108,10 +143,10 @@ def level_smape(rec, b: dict, specular_pyramid: str) -> torch.Tensor:
 
 def ms_loss(rec, b: dict, l1_weight: float = 1.0, ssim_weight: float = 0.0, perceptual=None,
             perceptual_weight: float = 0.0, relmse_weight: float = 0.0, level_weight: float = 0.0,
-            specular_pyramid: str = "log") -> tuple[torch.Tensor, dict[str, float]]:
+            specular_pyramid: str = "log", msssim_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
     """SMAPE of both components in their preprocessed domains, L1 of the tonemapped final
-    color, optionally DSSIM of the final color, the perceptual loss on it, RelMSE
-    (`relmse_huber`) of it and `level_smape` of the coarser levels (the network's
+    color, optionally DSSIM of the final color, 1 − its MS-SSIM, the perceptual loss on it,
+    RelMSE (`relmse_huber`) of it and `level_smape` of the coarser levels (the network's
     `specular_pyramid`)."""
     d = smape(rec.diffuse_pre, b["diffuse_target"])
     s = smape(rec.specular_pre, b["specular_target"])
@@ -125,6 +160,10 @@ def ms_loss(rec, b: dict, l1_weight: float = 1.0, ssim_weight: float = 0.0, perc
         ds = dssim(rec.total, b["reference"])
         parts["dssim"] = float(ds.detach())
         loss = loss + ssim_weight * ds
+    if msssim_weight > 0:
+        ms = 1.0 - ms_ssim(rec.total, b["reference"]).mean()
+        parts["msssim"] = float(ms.detach())
+        loss = loss + msssim_weight * ms
     if relmse_weight > 0:
         rm = relmse_huber(rec.total, b["reference"])
         parts["relmse"] = float(rm.detach())
@@ -140,4 +179,4 @@ def ms_loss(rec, b: dict, l1_weight: float = 1.0, ssim_weight: float = 0.0, perc
     return loss, parts
 
 
-__all__ = ["dssim", "level_smape", "log_l1", "ms_loss", "relmse", "relmse_huber", "smape", "ssim_map", "tonemap"]
+__all__ = ["dssim", "level_smape", "log_l1", "ms_loss", "ms_ssim", "relmse", "relmse_huber", "smape", "ssim_map", "tonemap"]

@@ -20,8 +20,10 @@ Recipe:
 - **Loss** (`losses.py`): SMAPE of each component in its preprocessed domain (Lin et al.
   2020), plus L1 of the final color after the transfer function log(1 + x) (robust to HDR
   outliers), plus `--perceptual W` × the VGG-16 feature loss when the weights are present,
-  plus `--ssim W` × DSSIM and `--relmse W` × RelMSE of the final color (`relmse_huber`: the
-  few pixels beside an emitter's edge that carry most of the metric weigh as in it).
+  plus `--ssim W` × DSSIM, `--msssim W` × (1 − MS-SSIM, five scales: structure at the
+  coarse scales too, where low sample counts leave blotches) and `--relmse W` × RelMSE of
+  the final color (`relmse_huber`: the few pixels beside an emitter's edge that carry most
+  of the metric weigh as in it).
 - **Beauty** (`--beauty`): every patch as a frame with only a beauty, albedo and normal
   (`preprocess.as_beauty`: the sum of both components in the diffuse slot, no variances, no
   covariance, the depth dropped in half the patches); exported as the `beauty` variant.
@@ -444,6 +446,8 @@ def parse(argv=None) -> argparse.Namespace:
                         "that and the score without it (`both`: `full` and `nocov` alike)")
     p.add_argument("--l1", type=float, default=1.0, help="weight of L1 on log(1 + color)")
     p.add_argument("--ssim", type=float, default=0.0, help="weight of DSSIM of the final color")
+    p.add_argument("--msssim", type=float, default=0.0,
+                   help="weight of 1 - MS-SSIM of the final color (five scales, losses.ms_ssim)")
     p.add_argument("--relmse", type=float, default=0.0,
                    help="weight of RelMSE of the final color (losses.relmse_huber: the metric's per-pixel "
                         "term, linear beyond 10x a pixel's scale)")
@@ -695,7 +699,8 @@ def main(argv=None) -> int:
         rec = reconstructed(net, out_b, b)
         loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual,
                                      perceptual_weight=a.perceptual, relmse_weight=a.relmse,
-                                     level_weight=a.level_loss, specular_pyramid=getattr(net, "specular_pyramid", "log"))
+                                     level_weight=a.level_loss, specular_pyramid=getattr(net, "specular_pyramid", "log"),
+                                     msssim_weight=a.msssim)
         if a.blend_bound > 0:
             excess = blend_excess(out_b, net.levels, a.blend_bound)
             parts["blend_excess"] = float(excess.detach())

@@ -506,6 +506,30 @@ def test_relmse_weight_enters_the_loss_and_the_log(tmp_path):
     assert all("relmse" not in r for r in _logged_rows(tiny, tmp_path / "plain"))
 
 
+def test_ms_ssim_sees_blotches_that_single_scale_ssim_barely_sees(tmp_path):
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(3)
+    r = F.avg_pool2d(torch.rand(1, 3, 128, 128, generator=g), 9, 1, 4) * 0.6 + 0.2
+    assert float(train_ms.losses.ms_ssim(r, r)) == pytest.approx(1.0, abs=1e-6)
+    # Noise of the same energy, at the pixel scale and in blotches of 8 pixels (what a
+    # kernel that only reweights a few noisy pixels leaves at low sample counts).
+    fine = torch.randn(1, 3, 128, 128, generator=g)
+    blotches = F.interpolate(torch.randn(1, 3, 16, 16, generator=g), scale_factor=8, mode="bilinear")
+    fine, blotches = (r + 0.05 * n / n.std() for n in (fine, blotches))
+    dssim = {k: float(train_ms.losses.dssim(x, r)) for k, x in (("fine", fine), ("blotches", blotches))}
+    dms = {k: 1 - float(train_ms.losses.ms_ssim(x, r)) for k, x in (("fine", fine), ("blotches", blotches))}
+    assert dssim["blotches"] < 0.5 * dssim["fine"] and dms["blotches"] > 1.5 * dms["fine"]
+    # 128² has four scales (a fifth, 8², would be smaller than the window); 12² has one;
+    # below the window's 11 pixels there is none.
+    assert 0 < 1 - float(train_ms.losses.ms_ssim(fine[..., :12, :12], r[..., :12, :12])) < 1
+    with pytest.raises(ValueError, match="at least 11x11"):
+        train_ms.losses.ms_ssim(r[..., :10, :10], r[..., :10, :10])
+    # In training: the weight enters the loss and the log.
+    rows = _logged_rows(_tiny_start(tmp_path), tmp_path / "ms", "--msssim", "0.5")
+    assert all(np.isfinite(r["msssim"]) and 0 < r["msssim"] < 1 for r in rows)
+
+
 def test_level_loss_holds_every_coarser_level_to_the_averaged_target(tmp_path):
     from mcdenoise_train.recon_ms import Reconstruction, color_pyramid
 
