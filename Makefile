@@ -102,8 +102,8 @@ train: setup-train build
 ## handling; docs/fireflies.md), on each set that is present: the validation scenes that chose
 ## the checkpoints (VAL_DATA, split val: scripts/cpu-pipeline's 384² ones), the held-out
 ## 384² scenes beside them (HELDOUT_DATA), Cycles' held-out 384² scenes (HELDOUT_C_DATA)
-## and the unseen test scenes of both renderers (TEST_DATA); then quality against time (benches/quality_time.py: seconds per 720p frame
-## on this machine, after make bench).
+## and the unseen test scenes of both renderers (TEST_DATA); then quality against time
+## (benches/quality_time.py: seconds per 720p frame on this machine, after make bench).
 VAL_DATA ?= runs/cpu/val384
 HELDOUT_DATA ?= runs/cpu/heldout384
 HELDOUT_C_DATA ?= runs/cpu/heldout384c

@@ -101,12 +101,13 @@ def ms_ssim(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
     small for five scales (the 11-pixel window at the coarsest) use the scales they have,
     their exponents renormalised. Each scale's mean is floored at 1e-4, so that a fractional
     power stays real."""
-    x, r = x.clamp(0, 1), r.clamp(0, 1)
+    if min(x.shape[-2:]) < 11:
+        raise ValueError(f"ms_ssim needs images of at least 11x11, got {tuple(x.shape[-2:])}")
     scales = 1
     while scales < len(MS_SSIM_WEIGHTS) and min(x.shape[-2:]) >> scales >= 11:
         scales += 1
-    if min(x.shape[-2:]) < 11:
-        raise ValueError(f"ms_ssim needs images of at least 11x11, got {tuple(x.shape[-2:])}")
+    # Clamped before the first 2x2 mean, as the metric sees the image (_ssim_terms clamps too).
+    x, r = x.clamp(0, 1), r.clamp(0, 1)
     w = torch.tensor(MS_SSIM_WEIGHTS[:scales], device=x.device, dtype=x.dtype)
     w = w / w.sum()
     out = torch.ones(x.shape[0], device=x.device, dtype=x.dtype)
