@@ -136,14 +136,16 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     assert "resumed at step 2" in _run(env, "train", "r", "60", "--steps", "2").stderr
 
     # Cycles' judging scenes: split once its validation scenes are complete; a new run selects
-    # on them too, a run that started without them resumes without them.
+    # on them too, and so does a run that started without them, its best.pt scored again.
     res_c = _renamed(make_dataset(tmp_path / "res-c", frames=3, size=48), "c", "train")
     assert "not all rendered yet" in out_err({**env, "VAL_C_SCENES": "c0,c7"}, "split")
     assert not (home / "val384c").exists()
     _run({**env, "VAL_C_SCENES": "c0"}, "split")
     assert {r["scene"] for r in manifest_frames(home / "val384c")} == {"c0"}
     assert {r["scene"] for r in manifest_frames(home / "heldout384c")} == {"c1", "c2"}
-    assert "resumed without " + str(home / "val384c") in _run(env, "train", "r", "60", "--steps", "2").stderr
+    assert "validation frames changed (2 -> 3): best.pt scored again" in _run(
+        env, "train", "r", "60", "--steps", "2").stderr
+    assert json.loads((home / "r" / "config.json").read_text())["data"][-1] == str(home / "val384c")
     _run(env, "train", "r2", "60", "--steps", "1", "--val-every", "1")
     config = json.loads((home / "r2" / "config.json").read_text())
     assert config["data"] == [str(dof), str(hires), str(home / "val384"), str(home / "val384c")]
