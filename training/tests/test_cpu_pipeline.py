@@ -50,17 +50,18 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
     # With Cycles: the depth-of-field training scenes (minutes each) first, then Cycles' test
-    # scenes, its judging scenes (the families where its test frames lose most to OIDN) and its
-    # training scenes (every family, at the training sets' size).
+    # scenes, the Mitsuba training scenes of every family (minutes each, where a Cycles scene
+    # takes most of an hour), Cycles' judging scenes (the families where its test frames lose
+    # most to OIDN) and its training scenes (every family, at the training sets' size).
     lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5"}, "render").stdout.splitlines()
     assert len(lines) == 8 and "--seed-base 620000" in lines[3]
     assert lines[2].endswith("--renderer mitsuba") and lines[4].endswith("--renderer cycles")
     assert "--test-scenes 8" in lines[4]
-    assert "--scenes 6 --seed-base 520988 --size 384 --spp 4,16,64 --ref-spp 2048" in lines[5]
-    assert lines[5].endswith("--renderer cycles --families dof,caustics,metals,interior,room")
-    assert "--scenes 5 --seed-base 630000 --size 384" in lines[6] and lines[6].endswith("--renderer cycles")
-    assert "--families" not in lines[6]
-    assert "--seed-base 600000" in lines[7]
+    assert "--seed-base 600000" in lines[5] and lines[5].endswith("--renderer mitsuba")
+    assert "--scenes 6 --seed-base 520988 --size 384 --spp 4,16,64 --ref-spp 2048" in lines[6]
+    assert lines[6].endswith("--renderer cycles --families dof,caustics,metals,interior,room")
+    assert "--scenes 5 --seed-base 630000 --size 384" in lines[7] and lines[7].endswith("--renderer cycles")
+    assert "--families" not in lines[7]
 
 
 def test_the_cycles_judging_seeds_give_the_scenes_the_pipeline_names():
