@@ -174,3 +174,24 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     beauty = judged()
     assert beauty.keys() == auto.keys() and {m for _, m in beauty} == {"input", "r", "shipped"}
     assert all(beauty[k] != auto[k] for k in beauty if k[1] != "input")
+
+
+@pytest.mark.skipif(not os.access("/proc/self/autogroup", os.W_OK), reason="no writable /proc/self/autogroup")
+def test_a_niced_render_in_its_own_session_nices_the_session(tmp_path):
+    """`render` started with setsid and nice gives its autogroup the nice value; one that
+    shares a session (a terminal's) leaves the session's as it was."""
+    body = SCRIPT.read_text()
+    start = body.index("yield_session() {")
+    fn = body[start:body.index("\n}\n", start) + 3]
+    probe = tmp_path / "probe.sh"
+    probe.write_text("say() { echo \"$*\" >&2; }\n" + fn + "yield_session\ncat /proc/self/autogroup\n")
+
+    def autogroup_nice(*prefix):
+        res = subprocess.run([*prefix, "bash", str(probe)], capture_output=True, text=True, timeout=30, check=True)
+        return int(res.stdout.split()[-1])
+
+    assert autogroup_nice("setsid", "nice", "-n", "7") == 7
+    assert autogroup_nice("setsid") == 0
+    before = Path("/proc/self/autogroup").read_text().split()[-1]
+    autogroup_nice("nice", "-n", "7")
+    assert Path("/proc/self/autogroup").read_text().split()[-1] == before
