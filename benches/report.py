@@ -274,7 +274,10 @@ def quality_section(results: Path) -> list[str]:
                          ("heldout-384-cycles",
                           "Held-out Cycles scenes at 384² (never seen in training or selection)"),
                          ("test-both", "Test scenes, both renderers (never seen in training or selection)"),
-                         ("test-256", "Test scenes at 256², rendered on a GPU (never seen in training or selection)")):
+                         ("test-256", "Test scenes at 256², rendered on a GPU (never seen in training or selection)"),
+                         ("spp-range", "Sample counts outside the test sets, Mitsuba (a probe of 8 scenes, "
+                                       "models/MODEL_CARD.md)"),
+                         ("spp-range-cycles", "Sample counts outside the test sets, Cycles (a probe of 4 scenes)")):
         d = results / split
         if not (d / "results.md").exists():
             continue
