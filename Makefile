@@ -169,9 +169,9 @@ ablation: setup-train build
 KILLS ?= 40
 reliability: setup-serve build
 	MCDENOISE_SOAK_KILLS=$(KILLS) MCDENOISE_RELIABILITY_OUT=$(CURDIR)/docs/results/reliability \
-	  cargo test --release --locked --test soak -- --nocapture --test-threads 1
+	  cargo test --release --locked --test integration -- soak:: --nocapture --test-threads 1
 	MCDENOISE_RELIABILITY_OUT=$(CURDIR)/docs/results/reliability \
-	  cargo test --release --locked --test bad_inputs -- --nocapture
+	  cargo test --release --locked --test integration -- bad_inputs:: --nocapture
 
 ## Fuzzing (docs/reliability.md) with cargo fuzz on nightly Rust (`cargo install cargo-fuzz`):
 ## each target for FUZZ_SECONDS, growing fuzz/corpus; crashes land in fuzz/regressions/<target>/,

@@ -2,12 +2,12 @@
 //! each answered with its own specific error (or accepted and failed, or accepted and
 //! sanitized, as the case says), and a good frame served right after each.
 //!
-//! `cargo test --release --test bad_inputs -- --ignored regenerate_corpus` rewrites the
+//! `cargo test --release --test integration -- --ignored bad_inputs::regenerate_corpus` rewrites the
 //! files from the generator below; `BAD_INPUTS_ONLY=text` runs only the cases whose name
 //! contains `text`. The manifest's format: `tests/bad-inputs/README.md` and [`Case`].
 
-mod common;
-mod daemon_common;
+use crate::common;
+use crate::daemon_common;
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};

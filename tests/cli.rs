@@ -1,6 +1,6 @@
 //! The `mcdenoise` binary end to end: run, preprocess, and its errors.
 
-mod common;
+use crate::common;
 
 use std::process::Command;
 

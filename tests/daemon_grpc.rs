@@ -1,8 +1,7 @@
 //! The daemon's gRPC API against a real daemon on ephemeral ports: chunked upload, watch,
 //! chunked download, the chunk protocol, cancellation, health and reflection.
 
-mod common;
-mod daemon_common;
+use crate::daemon_common;
 
 use std::time::Duration;
 

@@ -2,8 +2,8 @@
 //! and the tiny test models: round trips, idempotency, cancellation, admission limits,
 //! input errors, authentication, metrics.
 
-mod common;
-mod daemon_common;
+use crate::common;
+use crate::daemon_common;
 
 use std::time::Duration;
 

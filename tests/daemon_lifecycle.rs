@@ -2,8 +2,7 @@
 //! SIGKILL) without losing or repeating work, deadlines, retention, and the
 //! `mcdenoise submit` client against a live daemon.
 
-mod common;
-mod daemon_common;
+use crate::daemon_common;
 
 use std::process::Command;
 use std::time::Duration;

@@ -2,9 +2,9 @@
 //! after its directory: models listing, automatic and named choice, per-stage timings,
 //! refusals.
 
-mod common;
-mod daemon_common;
-mod model_dirs;
+use crate::common;
+use crate::daemon_common;
+use crate::model_dirs;
 
 use hyper::StatusCode;
 

@@ -1,7 +1,7 @@
 //! The engine on real contract-v1 graphs (the tiny random test models): preprocessing
 //! values, tiling, variant choice, contract checks, cancellation.
 
-mod common;
+use crate::common;
 
 use common::*;
 use mcdenoise::engine::contract::COLOR_CHANNELS;

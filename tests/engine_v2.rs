@@ -2,8 +2,8 @@
 //! tests/fixtures/models/tiny-v2), alone and beside contract-v1 ones: tiling, padding,
 //! variants named after their directory, and the loader's checks.
 
-mod common;
-mod model_dirs;
+use crate::common;
+use crate::model_dirs;
 
 use std::path::Path;
 

@@ -1,10 +1,10 @@
 //! Firefly handling with the shipped models on the committed fixture frames: isolated
 //! outliers injected into a frame must barely change the denoised result's error, and a
 //! frame without injected outliers must come out as well as without the handling. The
-//! numbers are printed (`cargo test --release --test fireflies -- --nocapture`);
+//! numbers are printed (`cargo test --release --test integration -- --nocapture fireflies::`);
 //! docs/fireflies.md lists them.
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 

@@ -1,7 +1,7 @@
 //! Reading frames: EXR round trips in every supported form, aliases, and one specific error
 //! per kind of bad input.
 
-mod common;
+use crate::common;
 
 use common::*;
 use mcdenoise::frame::{write_exr, Buffer, ChannelMaps, Frame, FrameError, Limits, OutputLayer, PlaneRef};

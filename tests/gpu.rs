@@ -2,7 +2,7 @@
 //! (`ORT_DYLIB_PATH` at the onnxruntime-gpu library: docs/training.md, "The engine on the
 //! GPU"). Elsewhere, CI included, each test says why it skipped.
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 

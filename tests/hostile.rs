@@ -2,8 +2,7 @@
 //! bodies that try to make the daemon buffer them, uploads that count against the limits
 //! however they are sent.
 
-mod common;
-mod daemon_common;
+use crate::daemon_common;
 
 use std::time::Duration;
 

@@ -5,8 +5,8 @@
 //! result, nothing lost or finished twice; a NATS restart loses no accepted job; the
 //! retention sweep removes each job once.
 
-mod common;
-mod daemon_common;
+use crate::common;
+use crate::daemon_common;
 
 use std::collections::HashMap;
 use std::net::TcpListener;

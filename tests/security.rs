@@ -3,8 +3,7 @@
 //! reach the logs or the job store, jobs belong to the client that submitted them,
 //! per-client limits, and TLS on both listeners.
 
-mod common;
-mod daemon_common;
+use crate::daemon_common;
 
 use std::collections::BTreeSet;
 use std::time::Duration;

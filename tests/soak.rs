@@ -9,8 +9,8 @@
 //! tiny test models), `MCDENOISE_BURST_FRAME` (side of the burst's square frames, default
 //! 48), `MCDENOISE_RELIABILITY_OUT` (a directory for the JSON figures).
 
-mod common;
-mod daemon_common;
+use crate::common;
+use crate::daemon_common;
 
 use std::collections::{BTreeMap, HashMap};
 use std::time::{Duration, Instant};

@@ -3,7 +3,7 @@
 //! of the samples (64 times too large at 64 spp), which the networks would otherwise trust
 //! far too much: `warn` reports them, `auto` undoes them.
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 

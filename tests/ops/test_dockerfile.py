@@ -135,6 +135,22 @@ def test_every_copied_path_and_script_exists_in_the_build_context():
         assert not dockerignore_includes(heavy), heavy
 
 
+def test_the_build_stage_fetch_layer_parses_with_only_the_manifests(tmp_path):
+    """The build stage runs `cargo fetch` with nothing but what it copied before (the
+    manifests): every target in Cargo.toml must name its path, since cargo looks for an
+    unnamed one (`benches/<name>.rs`) when it reads the manifest."""
+    build = stages()["build"]
+    fetch = next(i for i, (ins, rest) in enumerate(build) if ins == "RUN" and "cargo fetch" in rest)
+    copied = [a for ins, rest in build[:fetch] if ins == "COPY" for a in shlex.split(rest)[:-1]]
+    assert copied == ["Cargo.toml", "Cargo.lock"], copied
+    for name in copied:
+        (tmp_path / name).write_bytes((ROOT / name).read_bytes())
+    host = re.search(r"^host: (\S+)$", subprocess.run(["rustc", "-vV"], capture_output=True, text=True, check=True).stdout, re.M).group(1)
+    res = subprocess.run(["cargo", "fetch", "--locked", "--offline", "--target", host], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+
+
 def test_image_defaults_are_options_of_the_daemon():
     env = env_defaults()
     known = serve_env_vars()
