@@ -1,7 +1,9 @@
 //! The integration tests, one binary: each file beside this one is a module (`engine`,
 //! `daemon_http`, `hostile`, ...). One binary links the crate and its dependencies once
 //! instead of once per file, which is most of `make test`'s build time. Run one file's tests
-//! with a filter: `cargo test --release --test integration hostile::`.
+//! with a filter: `cargo test --release --test integration hostile::`. The exception is
+//! `shared_arena.rs`, its own binary: it measures the resident memory of its process, which
+//! no other test may share.
 
 mod common;
 mod daemon_common;
@@ -22,7 +24,6 @@ mod gpu;
 mod hostile;
 mod scale_out;
 mod security;
-mod shared_arena;
 mod shipped_models;
 mod soak;
 mod variance;

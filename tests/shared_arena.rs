@@ -9,7 +9,7 @@
 //! below the first job's own growth (with an arena per session each new variant adds about
 //! as much as the first).
 
-use crate::common;
+mod common;
 
 use std::path::PathBuf;
 
