@@ -343,6 +343,10 @@ pub struct ServeArgs {
     /// Sleeps this long before loading models (to observe readiness in tests).
     #[arg(long, env = "MCDENOISE_DEBUG_STARTUP_DELAY", value_parser = parse_duration, default_value = "0s", hide = true)]
     pub debug_startup_delay: Duration,
+    /// Shared mode: sleeps this long before applying each change another replica made (a
+    /// replica whose watch lags, as under load, in tests).
+    #[arg(long, env = "MCDENOISE_DEBUG_WATCH_DELAY", value_parser = parse_duration, default_value = "0s", hide = true)]
+    pub debug_watch_delay: Duration,
 }
 
 fn cores() -> usize {

@@ -125,7 +125,13 @@ impl Server {
                 .await?
                 .context("cannot open the job store")?;
         if let Some((shared, changes, progress)) = feeds {
-            tokio::spawn(follow_shared(service.clone(), shared, Box::pin(changes), Box::pin(progress)));
+            tokio::spawn(follow_shared(
+                service.clone(),
+                shared,
+                Box::pin(changes),
+                Box::pin(progress),
+                args.debug_watch_delay,
+            ));
         }
 
         let trigger = CancellationToken::new();
@@ -333,6 +339,7 @@ async fn follow_shared(
     shared: Arc<Shared>,
     mut changes: std::pin::Pin<Box<dyn futures_util::Stream<Item = Change> + Send>>,
     mut progress: std::pin::Pin<Box<dyn futures_util::Stream<Item = (String, crate::jobs::record::Progress)> + Send>>,
+    lag: Duration,
 ) {
     use futures_util::StreamExt;
     let mut depth = tokio::time::interval(Duration::from_secs(2));
@@ -343,6 +350,9 @@ async fn follow_shared(
                 // Off the async threads: a change may remove a job's files. Awaited, so
                 // changes stay in order.
                 Some(change) => {
+                    if !lag.is_zero() && !matches!(change, Change::Put { own: true, .. }) {
+                        tokio::time::sleep(lag).await;
+                    }
                     let service = service.clone();
                     let _ = tokio::task::spawn_blocking(move || service.apply_change(change)).await;
                 }

@@ -226,6 +226,41 @@ async fn metric(http: &HttpClient, name: &str) -> Option<f64> {
     text.lines().find_map(|l| l.strip_prefix(name).and_then(|v| v.trim().parse().ok()))
 }
 
+/// A job is found through every replica the moment it is accepted, as a client behind a
+/// load balancer needs, even where a replica's watch lags (`--debug-watch-delay`, what load
+/// does): a read by id that misses the mirror reads the shared record.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_is_found_through_any_replica_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let nats = Nats::start(&dir.path().join("nats"));
+    let fleet = Fleet::start(dir.path(), &nats, 2, &["--debug-watch-delay", "2s", "--debug-tile-delay", "200ms"]);
+    fleet.ready().await;
+    let exr = frame(48, 48);
+    let status_of = |id: &str| format!("/v1/jobs/{id}");
+    let id = submit_ok(&fleet.http(0), &exr, "").await;
+    let (status, job) = get_json(&fleet.http(1), &status_of(&id)).await.unwrap();
+    assert_eq!(status, StatusCode::OK, "the other replica, asked at once: {job}");
+    let resp = fleet.http(1).get(&format!("/v1/jobs/{id}/events")).await.unwrap();
+    assert_eq!(resp.status(), StatusCode::OK, "its events on the other replica");
+    drop(resp);
+    let mut grpc = mcdenoise::client::grpc_connect(&fleet.replicas[1].grpc, None).await.unwrap();
+    let got = grpc.get_job(mcdenoise::grpc::pb::GetJobRequest { id: id.clone() }).await;
+    assert!(got.is_ok(), "GetJob on the other replica: {got:?}");
+    // A cancellation through the other replica reaches it too.
+    let other = submit_ok(&fleet.http(0), &exr, "").await;
+    let (status, body) = fleet
+        .http(1)
+        .json(Method::POST, &format!("/v1/jobs/{other}/cancel"), &[], body_bytes(Vec::new()))
+        .await
+        .unwrap();
+    assert_eq!(status, StatusCode::OK, "cancel through the other replica: {body}");
+    // What is not a job stays unknown, without a read of the store.
+    let (status, _) = get_json(&fleet.http(1), &status_of("not-a-job")).await.unwrap();
+    assert_eq!(status, StatusCode::NOT_FOUND);
+    let (status, _) = get_json(&fleet.http(1), &status_of(&uuid::Uuid::now_v7().to_string())).await.unwrap();
+    assert_eq!(status, StatusCode::NOT_FOUND);
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_replicas_share_one_queue_and_answer_for_every_job() {
     let dir = tempfile::tempdir().unwrap();
@@ -289,6 +324,7 @@ async fn three_replicas_share_one_queue_and_answer_for_every_job() {
     // Events of a job run anywhere, watched on another replica, to the end.
     let slow = submit_ok(&fleet.http(0), &frame(96, 96), "").await;
     let resp = fleet.http(1).get(&format!("/v1/jobs/{slow}/events")).await.unwrap();
+    assert_eq!(resp.status(), StatusCode::OK, "events of {slow} on another replica");
     let mut events = Vec::new();
     read_sse(resp, |ev| {
         events.push(ev.event.clone());

@@ -176,7 +176,11 @@ impl Denoiser for Api {
 
     async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
         let caller = caller_of(&request);
-        let result = self.service.get(&request.into_inner().id, &caller).map(|s| Response::new(pb::Job::from(&s)));
+        let id = request.into_inner().id;
+        let result = match self.service.catch_up(&id).await {
+            Ok(()) => self.service.get(&id, &caller).map(|s| Response::new(pb::Job::from(&s))),
+            Err(e) => Err(e),
+        };
         self.observe("GetJob", result.map_err(|e| status(&e)))
     }
 
@@ -231,7 +235,11 @@ impl Denoiser for Api {
     async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
         let caller = caller_of(&request);
         let id = request.into_inner().id;
-        let result = self.service.events(&id, &caller).map_err(|e| status(&e)).map(|events| {
+        let result = match self.service.catch_up(&id).await {
+            Ok(()) => self.service.events(&id, &caller),
+            Err(e) => Err(e),
+        };
+        let result = result.map_err(|e| status(&e)).map(|events| {
             let stream = events
                 .map(move |ev| Ok(event_pb(&id, &ev)))
                 .take_until(self.shutdown.clone().cancelled_owned())

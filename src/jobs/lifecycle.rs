@@ -299,6 +299,7 @@ impl JobService {
     pub async fn cancel(&self, id: &str, caller: &Caller) -> Result<JobStatus> {
         let (id, caller) = (id.to_string(), caller.clone());
         self.blocking(move |s| {
+            s.catch_up_blocking(&id)?;
             let mut tries = 0;
             loop {
                 match s.cancel_now(&id, &caller) {
@@ -350,7 +351,11 @@ impl JobService {
     /// Removes a job with its files (a running job is cancelled first).
     pub async fn delete(&self, id: &str, caller: &Caller) -> Result<()> {
         let (id, caller) = (id.to_string(), caller.clone());
-        self.blocking(move |s| s.delete_now(&id, &caller)).await
+        self.blocking(move |s| {
+            s.catch_up_blocking(&id)?;
+            s.delete_now(&id, &caller)
+        })
+        .await
     }
 
     fn delete_now(&self, id: &str, caller: &Caller) -> Result<()> {

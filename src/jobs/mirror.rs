@@ -329,6 +329,36 @@ impl JobService {
         }
     }
 
+    /// Shared mode: reads the stored record of a job this replica's mirror does not hold
+    /// yet. A job accepted by another replica reaches the mirror through the watch a moment
+    /// later; without this, a client that submits through one replica and asks another at
+    /// once (replicas behind one load balancer) would be told that its job does not exist.
+    /// Only canonical job ids are looked up (anything else cannot be a job). Blocking;
+    /// nothing to do in embedded mode or for a job already known.
+    pub(super) fn catch_up_blocking(&self, id: &str) -> Result<()> {
+        if !self.may_be_elsewhere(id) {
+            return Ok(());
+        }
+        self.refresh(id).map(|_| ())
+    }
+
+    /// [`JobService::catch_up_blocking`] on the blocking pool: what the transports call before
+    /// a read by job id.
+    pub async fn catch_up(&self, id: &str) -> Result<()> {
+        if !self.may_be_elsewhere(id) {
+            return Ok(());
+        }
+        let id = id.to_string();
+        self.blocking(move |s| s.catch_up_blocking(&id)).await
+    }
+
+    /// Shared mode, a canonical job id, and not in this replica's mirror.
+    fn may_be_elsewhere(&self, id: &str) -> bool {
+        self.shared().is_some()
+            && uuid::Uuid::try_parse(id).is_ok_and(|u| u.hyphenated().to_string() == id)
+            && !self.lock().jobs.contains_key(id)
+    }
+
     /// Shared mode's `next_job`: the next job message this replica can run, claimed.
     pub(super) fn next_shared(&self, link: &super::claims::WorkerLink) -> Option<Claim> {
         let shared = self.shared().expect("shared mode").clone();

@@ -159,6 +159,7 @@ impl JobService {
     /// answers `Conflict` (no result yet) or `NotFound` (no reference, or not kept).
     pub async fn preview(&self, id: &str, caller: &Caller, image: PreviewImage, spec: Spec) -> Result<Arc<Vec<u8>>> {
         spec.check().map_err(Error::BadRequest)?;
+        self.catch_up(id).await?;
         let source = {
             let st = self.lock();
             let entry = entry_for(&st, id, caller)?;

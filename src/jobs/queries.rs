@@ -204,6 +204,7 @@ impl JobService {
 
     /// Opens the result of a succeeded job: the file and its size.
     pub async fn open_result(&self, id: &str, caller: &Caller) -> Result<(tokio::fs::File, u64)> {
+        self.catch_up(id).await?;
         let behind = self.shared().is_some() && {
             let st = self.lock();
             entry_for(&st, id, caller)?.record.state != JobState::Succeeded
