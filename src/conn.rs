@@ -435,3 +435,49 @@ where
         self.inner.call(request)
     }
 }
+
+/// `events` until the daemon shuts down, with every event that is ready when it does: a job
+/// that finishes during the drain broadcasts its end just before the listeners stop, and a
+/// client watching it must still receive that end (a plain `take_until` ends the stream
+/// first whenever both are ready).
+pub fn until_shutdown<S>(
+    events: S,
+    shutdown: tokio_util::sync::CancellationToken,
+) -> impl futures_util::Stream<Item = S::Item> + Send
+where
+    S: futures_util::Stream + Send + 'static,
+    S::Item: Send,
+{
+    use futures_util::StreamExt;
+    futures_util::stream::unfold((Box::pin(events), shutdown), |(mut events, shutdown)| async move {
+        tokio::select! {
+            biased;
+            item = events.next() => item.map(|i| (i, (events, shutdown))),
+            () = shutdown.cancelled() => None,
+        }
+    })
+}
+
+#[cfg(test)]
+mod shutdown_tests {
+    use futures_util::StreamExt;
+    use tokio_util::sync::CancellationToken;
+
+    use super::until_shutdown;
+
+    #[tokio::test]
+    async fn events_ready_at_shutdown_are_delivered_and_then_the_stream_ends() {
+        let token = CancellationToken::new();
+        token.cancel();
+        // Ready when the shutdown has already come: all delivered (a plain take_until
+        // would deliver none).
+        let ready = until_shutdown(futures_util::stream::iter(["progress", "succeeded"]), token.clone());
+        assert_eq!(ready.collect::<Vec<_>>().await, ["progress", "succeeded"]);
+        // Nothing ready: the stream ends with the shutdown instead of waiting.
+        let (tx, rx) = tokio::sync::mpsc::channel::<&str>(1);
+        let pending = until_shutdown(tokio_stream::wrappers::ReceiverStream::new(rx), token);
+        let got = tokio::time::timeout(std::time::Duration::from_secs(5), pending.collect::<Vec<_>>()).await;
+        assert_eq!(got.expect("ended at the shutdown"), Vec::<&str>::new());
+        drop(tx);
+    }
+}

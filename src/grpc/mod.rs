@@ -240,10 +240,9 @@ impl Denoiser for Api {
             Err(e) => Err(e),
         };
         let result = result.map_err(|e| status(&e)).map(|events| {
-            let stream = events
-                .map(move |ev| Ok(event_pb(&id, &ev)))
-                .take_until(self.shutdown.clone().cancelled_owned())
-                .boxed();
+            let stream =
+                crate::conn::until_shutdown(events.map(move |ev| Ok(event_pb(&id, &ev))), self.shutdown.clone())
+                    .boxed();
             Response::new(stream)
         });
         self.observe("WatchJob", result)

@@ -816,21 +816,20 @@ async fn events(
     let stream = app.service.events(&id, &caller)?;
     let mut attempt = 0;
     let mut resuming = seen.is_some();
-    let stream = stream
-        .filter_map(move |ev| {
-            if let JobEvent::Started { attempt: a } = ev {
-                attempt = a;
-            }
-            let event_id = event_id(&ev, attempt);
-            // The current state comes first; skip what the client has, up to the first news.
-            let known = resuming
-                && seen.as_deref().is_some_and(|s| {
-                    s == event_id || (matches!(ev, JobEvent::Started { .. }) && s.starts_with(&format!("{attempt}.")))
-                });
-            resuming &= known;
-            let event = Event::default().event(ev.name()).id(event_id).data(event_json(&id, &ev).to_string());
-            std::future::ready((!known).then_some(Ok(event)))
-        })
-        .take_until(app.shutdown.clone().cancelled_owned());
+    let stream = stream.filter_map(move |ev| {
+        if let JobEvent::Started { attempt: a } = ev {
+            attempt = a;
+        }
+        let event_id = event_id(&ev, attempt);
+        // The current state comes first; skip what the client has, up to the first news.
+        let known = resuming
+            && seen.as_deref().is_some_and(|s| {
+                s == event_id || (matches!(ev, JobEvent::Started { .. }) && s.starts_with(&format!("{attempt}.")))
+            });
+        resuming &= known;
+        let event = Event::default().event(ev.name()).id(event_id).data(event_json(&id, &ev).to_string());
+        std::future::ready((!known).then_some(Ok(event)))
+    });
+    let stream = crate::conn::until_shutdown(stream, app.shutdown.clone());
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
