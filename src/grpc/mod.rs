@@ -177,10 +177,7 @@ impl Denoiser for Api {
     async fn get_job(&self, request: Request<pb::GetJobRequest>) -> Result<Response<pb::Job>, Status> {
         let caller = caller_of(&request);
         let id = request.into_inner().id;
-        let result = match self.service.catch_up(&id).await {
-            Ok(()) => self.service.get(&id, &caller).map(|s| Response::new(pb::Job::from(&s))),
-            Err(e) => Err(e),
-        };
+        let result = self.service.find(&id, &caller).await.map(|s| Response::new(pb::Job::from(&s)));
         self.observe("GetJob", result.map_err(|e| status(&e)))
     }
 
@@ -235,11 +232,7 @@ impl Denoiser for Api {
     async fn watch_job(&self, request: Request<pb::WatchJobRequest>) -> Result<Response<EventStream>, Status> {
         let caller = caller_of(&request);
         let id = request.into_inner().id;
-        let result = match self.service.catch_up(&id).await {
-            Ok(()) => self.service.events(&id, &caller),
-            Err(e) => Err(e),
-        };
-        let result = result.map_err(|e| status(&e)).map(|events| {
+        let result = self.service.follow(&id, &caller).await.map_err(|e| status(&e)).map(|events| {
             let stream =
                 crate::conn::until_shutdown(events.map(move |ev| Ok(event_pb(&id, &ev))), self.shutdown.clone())
                     .boxed();

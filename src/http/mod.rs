@@ -632,8 +632,7 @@ async fn get_job(
     Extension(caller): Extension<Caller>,
     Path(id): Path<String>,
 ) -> Result<Json<JobView>, ApiError> {
-    app.service.catch_up(&id).await?;
-    Ok(Json(JobView::from(&app.service.get(&id, &caller)?)))
+    Ok(Json(JobView::from(&app.service.find(&id, &caller).await?)))
 }
 
 #[derive(Deserialize)]
@@ -812,8 +811,7 @@ async fn events(
     headers: HeaderMap,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     let seen = headers.get("last-event-id").and_then(|v| v.to_str().ok()).map(str::to_owned);
-    app.service.catch_up(&id).await?;
-    let stream = app.service.events(&id, &caller)?;
+    let stream = app.service.follow(&id, &caller).await?;
     let mut attempt = 0;
     let mut resuming = seen.is_some();
     let stream = stream.filter_map(move |ev| {

@@ -342,9 +342,9 @@ impl JobService {
         self.refresh(id).map(|_| ())
     }
 
-    /// [`JobService::catch_up_blocking`] on the blocking pool: what the transports call before
-    /// a read by job id.
-    pub async fn catch_up(&self, id: &str) -> Result<()> {
+    /// [`JobService::catch_up_blocking`] on the blocking pool: what every read by job id
+    /// (`find`, `follow`, `open_result`, `preview`) does first.
+    pub(super) async fn catch_up(&self, id: &str) -> Result<()> {
         if !self.may_be_elsewhere(id) {
             return Ok(());
         }

@@ -68,6 +68,21 @@ pub struct Throughput {
 }
 
 impl JobService {
+    /// The job's status as the transports answer a read by id: in shared mode a job this
+    /// replica has not seen yet is read from the store first ([`JobService::catch_up`]), so
+    /// that a job is found through any replica from the moment it is accepted.
+    pub async fn find(&self, id: &str, caller: &Caller) -> Result<JobStatus> {
+        self.catch_up(id).await?;
+        self.get(id, caller)
+    }
+
+    /// The job's events ([`JobService::events`]), looked up as [`JobService::find`] does.
+    pub async fn follow(&self, id: &str, caller: &Caller) -> Result<BoxStream<'static, JobEvent>> {
+        self.catch_up(id).await?;
+        self.events(id, caller)
+    }
+
+    /// The job's status from this replica's mirror alone.
     pub fn get(&self, id: &str, caller: &Caller) -> Result<JobStatus> {
         let st = self.lock();
         let entry = entry_for(&st, id, caller)?;
