@@ -56,6 +56,26 @@ fn tiled_output_equals_whole_frame_output() {
 }
 
 #[test]
+fn detail_gains_are_read_and_tiles_still_equal_the_whole_frame() {
+    let frame = synthetic_frame(90, 70, true);
+    let whole = engine_at(&tiny_v2_gain(), 0).denoise(&frame, None, &mut |_| true).unwrap();
+    let mut e = engine_at(&tiny_v2_gain(), 18);
+    assert!(e.models()[0].detail_gains && !engine_at(&tiny_v2(), 0).models()[0].detail_gains);
+    let tiled = e.denoise(&frame, None, &mut |_| true).unwrap();
+    assert!(tiled.tiles >= 9, "{} tiles", tiled.tiles);
+    for c in 0..3 {
+        let d = max_rel_diff(&tiled.color[c], &whole.color[c]);
+        assert!(d <= 1e-5, "color {c}: relative difference {d}");
+        assert!(tiled.color[c].iter().all(|v| v.is_finite()));
+    }
+    // A graph with some of the gains but not all is refused by the one missing.
+    let tmp = tempfile::tempdir().unwrap();
+    write(tmp.path(), "full", "model.onnx", &rename(&read(&tiny_v2_gain(), "full", "model.onnx"), "gain_1", "gain_9"));
+    let msg = load_error(tmp.path());
+    assert!(msg.contains("full/model.onnx") && msg.contains("graph has no `gain_1`"), "{msg}");
+}
+
+#[test]
 fn the_output_is_finite_and_the_components_add_up() {
     let out = engine_at(&tiny_v2(), 32).denoise(&synthetic_frame(45, 37, true), None, &mut |_| true).unwrap();
     for c in 0..3 {

@@ -944,6 +944,7 @@ mod tests {
             outputs: Outputs::Kernels,
             precision: Precision::Fp32,
             specular_pyramid: contract::SpecularPyramid::Log,
+            detail_gains: false,
         }
     }
 

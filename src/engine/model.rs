@@ -52,6 +52,8 @@ pub struct ModelInfo {
     /// How the reconstruction averages the specular's pyramid (`log` for contract v1, which
     /// has no pyramid).
     pub specular_pyramid: SpecularPyramid,
+    /// Whether the graph outputs detail gains (`gain_<l>`, contract v2; false for v1).
+    pub detail_gains: bool,
 }
 
 fn component_or_both<S: serde::Serializer>(c: &Option<Component>, s: S) -> Result<S::Ok, S::Error> {
@@ -291,6 +293,7 @@ impl Network {
             precision: Precision::Fp32,
             outputs: Outputs::Kernels,
             specular_pyramid: SpecularPyramid::Log,
+            detail_gains: false,
         };
         Ok(Network { session: model.session, info })
     }
@@ -440,12 +443,18 @@ impl MultiScaleNetwork {
             ("features", common.features.feature_channels()),
         ];
         let mut expected_outputs = Vec::new();
+        // Detail gains are optional outputs: a graph with `gain_0` has one per blend.
+        let detail_gains =
+            outputs == Outputs::Kernels && levels > 1 && model.session.outputs().iter().any(|o| o.name() == "gain_0");
         match outputs {
             Outputs::Kernels => {
                 for l in 0..levels {
                     expected_outputs.push((format!("kernel_{l}"), 2 * kernel_size * kernel_size));
                     if l + 1 < levels {
                         expected_outputs.push((format!("blend_{l}"), 2));
+                        if detail_gains {
+                            expected_outputs.push((format!("gain_{l}"), 2));
+                        }
                     }
                 }
             }
@@ -479,6 +488,7 @@ impl MultiScaleNetwork {
             outputs,
             precision,
             specular_pyramid,
+            detail_gains,
         };
         let binding = if placement.io_binding.enabled() {
             let binding = Binding::new(placement.device)
@@ -505,6 +515,7 @@ impl MultiScaleNetwork {
         let (k, levels) = (self.info.kernel_size, self.info.levels);
         let name = self.info.variant;
         let linear = self.info.specular_pyramid == SpecularPyramid::Linear;
+        let detail_gains = self.info.detail_gains;
         let outputs = self.infer(diffuse, specular, features, h, w)?;
         let tensor = |output: String, channels: usize, l: usize| {
             extract(&outputs, name, &output, [channels, h >> l, w >> l], (w, h))
@@ -513,6 +524,7 @@ impl MultiScaleNetwork {
             kernel_size: k,
             kernels: Vec::new(),
             blends: Vec::new(),
+            gains: Vec::new(),
             linear_means,
         });
         for l in 0..levels {
@@ -525,6 +537,12 @@ impl MultiScaleNetwork {
                 let (d, s) = blends.split_at(blends.len() / 2);
                 pyramids[0].blends.push(d);
                 pyramids[1].blends.push(s);
+                if detail_gains {
+                    let gains = tensor(format!("gain_{l}"), 2, l)?;
+                    let (d, s) = gains.split_at(gains.len() / 2);
+                    pyramids[0].gains.push(d);
+                    pyramids[1].gains.push(s);
+                }
             }
         }
         Ok(consume(pyramids))
@@ -635,9 +653,11 @@ fn with_levels_hint(e: EngineError, levels: usize) -> EngineError {
         EngineError::Model { path, reason } => EngineError::Model {
             path,
             reason: format!(
-                "{reason}; `{}` = {levels} expects outputs kernel_0 … kernel_{} and blend_0 … blend_{}",
+                "{reason}; `{}` = {levels} expects outputs kernel_0 … kernel_{} and blend_0 … blend_{} \
+                 (and, for detail gains, gain_0 … gain_{})",
                 keys::LEVELS,
                 levels - 1,
+                levels as isize - 2,
                 levels as isize - 2
             ),
         },

@@ -8,8 +8,12 @@
 //! o_l = f_l + σ(blend_l) · (up(o_{l+1}) − up(avgpool2x2(f_l)))
 //! ```
 //!
+//! With detail gains (graph outputs `gain_<l>`), each level's own detail is scaled:
+//! `o_l = m_l + σ(gain_l) · (f_l − m_l) + σ(blend_l) · (up(o_{l+1}) − m_l)`, `m_l =
+//! up(avgpool2x2(f_l))`.
+//!
 //! `up` is linear, so the engine upsamples the difference `o_{l+1} − avgpool2x2(f_l)` once
-//! instead of both terms. The filter is v1's (see [`super::reconstruct`]): softmax and
+//! instead of both terms (and, with gains, `avgpool2x2(f_l)` as well). The filter is v1's (see [`super::reconstruct`]): softmax and
 //! weighted sum fused per output row, the weights never stored, tap-major so that logits
 //! and color rows are read contiguously, compiled for AVX2+FMA where the CPU has them. With
 //! k² = 25 taps the maximum is found in a first pass over the row's logits (they then stay in
@@ -34,6 +38,9 @@ pub struct Pyramid<'a> {
     pub kernels: Vec<&'a [f32]>,
     /// `blends[l]`: blend logits `[h_l][w_l]` of level `l < L − 1`.
     pub blends: Vec<&'a [f32]>,
+    /// `gains[l]`: detail-gain logits `[h_l][w_l]` of level `l < L − 1`; empty for a network
+    /// without them.
+    pub gains: Vec<&'a [f32]>,
     /// The color is ln(1 + x) (≥ 0) and the coarser levels average x, not the color.
     pub linear_means: bool,
 }
@@ -57,6 +64,11 @@ pub fn reconstruct(p: &Pyramid, color: &[f32], w: usize, h: usize, core: Rect, o
     for (l, blend) in p.blends.iter().enumerate() {
         assert_eq!(blend.len(), (w >> l) * (h >> l), "level {l} blend does not cover the level");
     }
+    assert!(p.gains.is_empty() || p.gains.len() == levels - 1, "{levels} kernel levels need 0 or {} gains", levels - 1);
+    for (l, gain) in p.gains.iter().enumerate() {
+        assert_eq!(gain.len(), (w >> l) * (h >> l), "level {l} gain does not cover the level");
+    }
+    let gain = |l: usize| p.gains.get(l).copied();
 
     if levels == 1 {
         filter(p.kernels[0], color, w, h, k, core, out);
@@ -89,7 +101,7 @@ pub fn reconstruct(p: &Pyramid, color: &[f32], w: usize, h: usize, core: Rect, o
         let mut f = vec![0f32; 3 * wl * hl];
         filter(p.kernels[l], &pyramid[l - 1], wl, hl, k, whole(wl, hl), &mut f);
         let mut o = vec![0f32; 3 * wl * hl];
-        blend(&f, whole(wl, hl), &coarse, wl, hl, p.blends[l], whole(wl, hl), &mut o);
+        blend(&f, whole(wl, hl), &coarse, wl, hl, p.blends[l], gain(l), whole(wl, hl), &mut o);
         coarse = o;
     }
     // Level 0, only where the core needs it: the coarse pixels its upsampling reads (one
@@ -99,7 +111,7 @@ pub fn reconstruct(p: &Pyramid, color: &[f32], w: usize, h: usize, core: Rect, o
     let span = Rect { x: 2 * lo_x, y: 2 * lo_y, w: 2 * (hi_x + 1 - lo_x), h: 2 * (hi_y + 1 - lo_y) };
     let mut f = vec![0f32; 3 * span.pixels()];
     filter(p.kernels[0], color, w, h, k, span, &mut f);
-    blend(&f, span, &coarse, w, h, p.blends[0], core, out);
+    blend(&f, span, &coarse, w, h, p.blends[0], gain(0), core, out);
 }
 
 fn whole(w: usize, h: usize) -> Rect {
@@ -167,50 +179,83 @@ fn up_taps(i: usize, n: usize) -> (usize, usize, f32, f32) {
 }
 
 /// `o = f + σ(b) · up(coarse − avgpool(f))` over `target` (a rectangle of the level, `w`×`h`),
-/// written to `out` (`[3][target.h][target.w]`). `f` holds `[3][span.h][span.w]` for a `span`
-/// of even origin and size that contains the 2×2 blocks behind every coarse pixel the
-/// upsampling of `target` reads; `coarse` is the next level's output, `[3][h/2][w/2]`;
-/// `blend` the blend logits `[h][w]`.
+/// written to `out` (`[3][target.h][target.w]`); with detail-gain logits `g`, plus
+/// `(σ(g) − 1) · (f − up(avgpool(f)))`. `f` holds `[3][span.h][span.w]` for a `span` of even
+/// origin and size that contains the 2×2 blocks behind every coarse pixel the upsampling of
+/// `target` reads; `coarse` is the next level's output, `[3][h/2][w/2]`; `blend` the blend
+/// logits `[h][w]`, `gain` the gain logits `[h][w]`.
 #[allow(clippy::too_many_arguments)]
-fn blend(f: &[f32], span: Rect, coarse: &[f32], w: usize, h: usize, blend: &[f32], target: Rect, out: &mut [f32]) {
+fn blend(
+    f: &[f32],
+    span: Rect,
+    coarse: &[f32],
+    w: usize,
+    h: usize,
+    blend: &[f32],
+    gain: Option<&[f32]>,
+    target: Rect,
+    out: &mut [f32],
+) {
     let (wc, hc) = (w / 2, h / 2);
     let (sx, sy) = (span.x / 2, span.y / 2);
     let (sw, sh) = (span.w / 2, span.h / 2);
     let sn = span.pixels();
-    // d = coarse − avgpool(f) over the span's coarse pixels.
+    // p = avgpool(f) and d = coarse − p over the span's coarse pixels.
+    let mut p = vec![0f32; 3 * sw * sh];
     let mut d = vec![0f32; 3 * sw * sh];
-    d.par_chunks_mut(sw).enumerate().for_each(|(row, d)| {
+    p.par_chunks_mut(sw).zip(d.par_chunks_mut(sw)).enumerate().for_each(|(row, (p, d))| {
         let (c, y) = (row / sh, row % sh);
         let top = &f[c * sn + 2 * y * span.w..][..span.w];
         let bottom = &f[c * sn + (2 * y + 1) * span.w..][..span.w];
         let co = &coarse[c * wc * hc + (sy + y) * wc + sx..][..sw];
         for x in 0..sw {
-            d[x] = co[x] - (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
+            p[x] = (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
+            d[x] = co[x] - p[x];
         }
     });
     let tn = target.pixels();
     let (o0, rest) = out.split_at_mut(tn);
     let (o1, o2) = rest.split_at_mut(tn);
     let tw = target.w;
+    // One coarse row upsampled vertically, over the span's coarse columns.
+    let vertical = |src: &[f32], c: usize, (i0, i1, a0, a1): (usize, usize, f32, f32), line: &mut [f32]| {
+        let r0 = &src[c * sw * sh + (i0 - sy) * sw..][..sw];
+        let r1 = &src[c * sw * sh + (i1 - sy) * sw..][..sw];
+        for x in 0..sw {
+            line[x] = a0 * r0[x] + a1 * r1[x];
+        }
+    };
     o0.par_chunks_mut(tw).zip(o1.par_chunks_mut(tw)).zip(o2.par_chunks_mut(tw)).enumerate().for_each(
         |(row, ((o0, o1), o2))| {
             let y = target.y + row;
-            let (i0, i1, a0, a1) = up_taps(y, hc);
+            let taps = up_taps(y, hc);
             let mut line = vec![0f32; sw];
+            let mut mean = vec![0f32; if gain.is_some() { sw } else { 0 }];
             let b = &blend[y * w + target.x..][..tw];
+            let g = gain.map(|g| &g[y * w + target.x..][..tw]);
             for (c, o) in [o0, o1, o2].into_iter().enumerate() {
-                // The row upsampled vertically, over the span's coarse columns.
-                let r0 = &d[c * sw * sh + (i0 - sy) * sw..][..sw];
-                let r1 = &d[c * sw * sh + (i1 - sy) * sw..][..sw];
-                for x in 0..sw {
-                    line[x] = a0 * r0[x] + a1 * r1[x];
-                }
+                vertical(&d, c, taps, &mut line);
                 let fr = &f[c * sn + (y - span.y) * span.w..][..span.w];
-                for (j, o) in o.iter_mut().enumerate() {
-                    let x = target.x + j;
-                    let (j0, j1, b0, b1) = up_taps(x, wc);
-                    let u = b0 * line[j0 - sx] + b1 * line[j1 - sx];
-                    *o = fr[x - span.x] + sigmoid(b[j]) * u;
+                match g {
+                    None => {
+                        for (j, o) in o.iter_mut().enumerate() {
+                            let x = target.x + j;
+                            let (j0, j1, b0, b1) = up_taps(x, wc);
+                            let u = b0 * line[j0 - sx] + b1 * line[j1 - sx];
+                            *o = fr[x - span.x] + sigmoid(b[j]) * u;
+                        }
+                    }
+                    Some(g) => {
+                        vertical(&p, c, taps, &mut mean);
+                        for (j, o) in o.iter_mut().enumerate() {
+                            let x = target.x + j;
+                            let (j0, j1, b0, b1) = up_taps(x, wc);
+                            let u = b0 * line[j0 - sx] + b1 * line[j1 - sx];
+                            let fx = fr[x - span.x];
+                            let detail = fx - (b0 * mean[j0 - sx] + b1 * mean[j1 - sx]);
+                            *o = fx + sigmoid(b[j]) * u + (sigmoid(g[j]) - 1.0) * detail;
+                        }
+                    }
                 }
             }
         },
@@ -383,6 +428,7 @@ mod tests {
         k: usize,
         kernels: &[Vec<f32>],
         blends: &[Vec<f32>],
+        gains: &[Vec<f32>],
         color: &[f32],
         w: usize,
         h: usize,
@@ -475,9 +521,10 @@ mod tests {
             let mut next = vec![0.0; 3 * wl * hl];
             for c in 0..3 {
                 for i in 0..wl * hl {
-                    let s = 1.0 / (1.0 + (-(blends[l][i] as f64)).exp());
+                    let sigmoid = |x: f32| 1.0 / (1.0 + (-(x as f64)).exp());
+                    let (a, g) = (sigmoid(blends[l][i]), gains.get(l).map_or(1.0, |g| sigmoid(g[i])));
                     let j = c * wl * hl + i;
-                    next[j] = f.0[j] + s * (uo.0[j] - upf.0[j]);
+                    next[j] = upf.0[j] + g * (f.0[j] - upf.0[j]) + a * (uo.0[j] - upf.0[j]);
                 }
             }
             o = (next, wl, hl);
@@ -498,6 +545,11 @@ mod tests {
         (kernels, blends, rng.vec(3 * w * h, 0.0, 2.0))
     }
 
+    /// Detail-gain logits of every level below the coarsest.
+    fn gains(rng: &mut Rng, levels: usize, w: usize, h: usize) -> Vec<Vec<f32>> {
+        (0..levels - 1).map(|l| rng.vec((w >> l) * (h >> l), -6.0, 6.0)).collect()
+    }
+
     fn run(
         k: usize,
         kernels: &[Vec<f32>],
@@ -507,13 +559,15 @@ mod tests {
         h: usize,
         core: Rect,
     ) -> Vec<f32> {
-        run_means(k, kernels, blends, color, (w, h), core, false)
+        run_means(k, kernels, blends, &[], color, (w, h), core, false)
     }
 
+    #[allow(clippy::too_many_arguments)]
     fn run_means(
         k: usize,
         kernels: &[Vec<f32>],
         blends: &[Vec<f32>],
+        gains: &[Vec<f32>],
         color: &[f32],
         (w, h): (usize, usize),
         core: Rect,
@@ -523,6 +577,7 @@ mod tests {
             kernel_size: k,
             kernels: kernels.iter().map(Vec::as_slice).collect(),
             blends: blends.iter().map(Vec::as_slice).collect(),
+            gains: gains.iter().map(Vec::as_slice).collect(),
             linear_means,
         };
         let mut out = vec![0f32; 3 * core.pixels()];
@@ -539,13 +594,16 @@ mod tests {
                 // Odd multiples of the pooling grid, so every level has odd sides somewhere.
                 let (w, h) = (m * [7, 5, 3, 3, 3][levels - 1], m * [5, 3, 5, 3, 1][levels - 1]);
                 let (kernels, blends, color) = case(&mut rng, k, levels, w, h, 8.0);
-                for linear in [false, true] {
-                    let want = scalar(k, &kernels, &blends, &color, w, h, linear);
-                    let got = run_means(k, &kernels, &blends, &color, (w, h), whole(w, h), linear);
+                let gains = gains(&mut rng, levels, w, h);
+                for (linear, gains) in [(false, &[][..]), (true, &[][..]), (false, &gains[..]), (true, &gains[..])] {
+                    let want = scalar(k, &kernels, &blends, gains, &color, w, h, linear);
+                    let got = run_means(k, &kernels, &blends, gains, &color, (w, h), whole(w, h), linear);
+                    let with_gains = !gains.is_empty();
                     for (i, (g, e)) in got.iter().zip(&want).enumerate() {
                         assert!(
                             (*g as f64 - e).abs() <= 2e-6 * e.abs().max(1.0),
-                            "k {k}, L {levels}, {w}x{h}, linear means {linear}, sample {i}: {g} vs {e}"
+                            "k {k}, L {levels}, {w}x{h}, linear means {linear}, gains {with_gains}, sample {i}: \
+                             {g} vs {e}"
                         );
                     }
                 }
@@ -558,15 +616,16 @@ mod tests {
         let mut rng = Rng(2);
         let (k, levels, w, h) = (5, 3, 36, 28);
         let (kernels, blends, color) = case(&mut rng, k, levels, w, h, 4.0);
-        for linear in [false, true] {
-            let all = run_means(k, &kernels, &blends, &color, (w, h), whole(w, h), linear);
+        let gains = gains(&mut rng, levels, w, h);
+        for (linear, gains) in [(false, &[][..]), (true, &[][..]), (true, &gains[..])] {
+            let all = run_means(k, &kernels, &blends, gains, &color, (w, h), whole(w, h), linear);
             for core in [
                 Rect { x: 0, y: 0, w: 1, h: 1 },
                 Rect { x: 5, y: 3, w: 13, h: 11 },
                 Rect { x: 35, y: 27, w: 1, h: 1 },
                 Rect { x: 8, y: 20, w: 28, h: 8 },
             ] {
-                let part = run_means(k, &kernels, &blends, &color, (w, h), core, linear);
+                let part = run_means(k, &kernels, &blends, gains, &color, (w, h), core, linear);
                 for c in 0..3 {
                     for y in 0..core.h {
                         for x in 0..core.w {

@@ -83,6 +83,7 @@ impl Denoiser for FakeDenoiser {
             outputs: crate::engine::Outputs::Kernels,
             precision: crate::engine::Precision::Fp32,
             specular_pyramid: crate::engine::SpecularPyramid::Log,
+            detail_gains: false,
         }]
     }
 

@@ -12,6 +12,11 @@ pub fn tiny_v2() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/tiny-v2")
 }
 
+/// A tiny contract-v2 `full` network with detail gains (`full/model.onnx`).
+pub fn tiny_v2_gain() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/models/tiny-v2-gain")
+}
+
 /// Replaces every occurrence of `from` by `to` (same length) in an ONNX file's bytes.
 pub fn rename(bytes: &[u8], from: &str, to: &str) -> Vec<u8> {
     assert_eq!(from.len(), to.len());

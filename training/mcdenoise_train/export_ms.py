@@ -2,7 +2,8 @@
 
 `export_onnx(model, path, variant)` writes one `MSNet` as `<variant>/model.onnx`: inputs
 `diffuse`, `specular` `[N,10,H,W]` and `features` `[N,C,H,W]`; outputs `kernel_<l>`
-`[N,2k²,H/2^l,W/2^l]` and `blend_<l>` `[N,2,H/2^l,W/2^l]`; float32, N/H/W dynamic, opset
+`[N,2k²,H/2^l,W/2^l]` and `blend_<l>` `[N,2,H/2^l,W/2^l]` (and `gain_<l>` `[N,2,H/2^l,W/2^l]`
+for a network with detail gains); float32, N/H/W dynamic, opset
 17, the `mcdenoise.*` metadata. The file is checked (onnx.checker, op set, shapes, exact
 metadata) and run in onnxruntime on a shape other than the traced one; the export fails
 unless max |ort - torch| <= 1e-4 * max(1, max |torch|) for every output.
@@ -76,8 +77,9 @@ _TRACE_HW = (32, 48)
 _VERIFY_SHAPE = (2, 48, 80)
 
 
-def output_names(levels: int) -> list[str]:
-    return [f"kernel_{l}" for l in range(levels)] + [f"blend_{l}" for l in range(levels - 1)]
+def output_names(levels: int, detail_gain: bool = False) -> list[str]:
+    return ([f"kernel_{l}" for l in range(levels)] + [f"blend_{l}" for l in range(levels - 1)]
+            + [f"gain_{l}" for l in range(levels - 1) if detail_gain])
 
 
 def metadata_for(model: MSNet, variant: str, compression: str = "engine") -> dict[str, str]:
@@ -123,13 +125,12 @@ def _to_proto(model: MSNet) -> onnx.ModelProto:
     h, w = _TRACE_HW
     args = (torch.zeros(1, COLOR_CHANNELS, h, w), torch.zeros(1, COLOR_CHANNELS, h, w),
             torch.zeros(1, model.in_features, h, w))
-    names = output_names(model.levels)
+    names = output_names(model.levels, model.detail_gain)
     dyn = {0: "N", 2: "H", 3: "W"}
     dynamic = {"diffuse": dyn, "specular": dyn, "features": dyn}
-    for l in range(model.levels):
-        dynamic[f"kernel_{l}"] = {0: "N", 2: f"H{l}", 3: f"W{l}"}
-        if l < model.levels - 1:
-            dynamic[f"blend_{l}"] = {0: "N", 2: f"H{l}", 3: f"W{l}"}
+    for name in names:
+        l = name.rsplit("_", 1)[1]
+        dynamic[name] = {0: "N", 2: f"H{l}", 3: f"W{l}"}
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -162,9 +163,10 @@ class WithReconstruction(torch.nn.Module):
             outputs = [o.float() for o in self.net(*(symlog(x).half() for x in (diffuse, specular, features)))]
         else:
             outputs = self.net(diffuse, specular, features)
-        k, b = split_outputs(outputs, self.net.levels)
+        k, b, g = split_outputs(outputs, self.net.levels)
         pyramids = {"diffuse": "log", "specular": self.net.specular_pyramid}
-        return tuple(reconstruct_component(k[c], b[c], x[:, :3], filter=filter_plain, pyramid=pyramids[c])
+        return tuple(reconstruct_component(k[c], b[c], x[:, :3], filter=filter_plain, pyramid=pyramids[c],
+                                           gains=g[c] if g else None)
                      for c, x in (("diffuse", diffuse), ("specular", specular)))
 
 
@@ -243,7 +245,7 @@ def _check_graph(proto: onnx.ModelProto, model: MSNet) -> None:
         raise RuntimeError(f"graph inputs {inputs}, expected {expect}")
     taps = model.kernel_size ** 2
     outputs = [(o.name, o.type.tensor_type.shape.dim[1].dim_value) for o in proto.graph.output]
-    want = [(f"kernel_{l}", 2 * taps) for l in range(model.levels)] + [(f"blend_{l}", 2) for l in range(model.levels - 1)]
+    want = [(name, 2 * taps if name.startswith("kernel_") else 2) for name in output_names(model.levels, model.detail_gain)]
     if outputs != want:
         raise RuntimeError(f"graph outputs {outputs}, expected {want}")
 
@@ -262,9 +264,10 @@ def verify_onnx(path: str | os.PathLike, model: MSNet, seed: int = 0) -> float:
     meta = {p.key: p.value for p in onnx.load(str(path), load_external_data=False).metadata_props}
     if meta.get(META_INPUT_COMPRESSION, "graph") == "engine":
         d, s, f = compress(d), compress(s), compress(f)
-    out = sess.run(output_names(model.levels), {"diffuse": d.numpy(), "specular": s.numpy(), "features": f.numpy()})
+    names = output_names(model.levels, model.detail_gain)
+    out = sess.run(names, {"diffuse": d.numpy(), "specular": s.numpy(), "features": f.numpy()})
     worst = 0.0
-    for name, o, r in zip(output_names(model.levels), out, ref):
+    for name, o, r in zip(names, out, ref, strict=True):
         if o.shape != r.shape:
             raise RuntimeError(f"{path}: {name} is {o.shape} in onnxruntime, {r.shape} in torch")
         diff = float(np.max(np.abs(o - r)))
@@ -311,9 +314,13 @@ def main(argv=None) -> int:
     if a.random:
         torch.manual_seed(a.seed)
         net = from_arguments(a, len(FEATURES_FULL)).eval()
-        if a.head_gain != 1.0:
-            with torch.no_grad():
-                for h in [*net.kernel_heads, *net.blend_heads]:
+        with torch.no_grad():
+            for h in net.gain_heads:  # random gains too (a new network's start at one tells nothing)
+                torch.nn.init.kaiming_uniform_(h.weight, nonlinearity="relu")
+                h.weight.mul_(0.1)
+                h.bias.zero_()
+            if a.head_gain != 1.0:
+                for h in [*net.kernel_heads, *net.blend_heads, *net.gain_heads]:
                     h.weight.mul_(a.head_gain)
     else:
         net, _ = load_msnet(a.checkpoint)

@@ -13,6 +13,7 @@ far more context for the same cost (Vogels et al. 2018; RenderKit/oidn's U-Nets)
     level l+1 -> nearest x2 -> concat skip l -> two 3x3 convs        (decoder, l = L-2 … 0)
     at every level: a 1x1 head -> kernel logits [N, 2k², H/2^l, W/2^l] (diffuse taps, then
     specular taps) and, below the coarsest level, blend logits [N, 2, H/2^l, W/2^l]
+    (and, with `detail_gain`, detail-gain logits [N, 2, H/2^l, W/2^l])
 
 `recon_ms.py` turns these into the filtered color (docs/model-contract.md, "Model contract
 v2"): a k x k kernel at each pyramid level of the preprocessed color, blended coarse to
@@ -22,7 +23,11 @@ leaves that to the engine (`compress_inputs = False`, metadata `mcdenoise.input_
 a quarter of the graph's time (docs/model-contract.md).
 
 `forward` returns `(kernel_0, …, kernel_{L-1}, blend_0, …, blend_{L-2})`, the graph's
-outputs in order. H and W must be multiples of `size_multiple` (2^(L-1)).
+outputs in order, followed by `(gain_0, …, gain_{L-2})` with `detail_gain`: per pixel, how
+much of each level's own detail (its filtered color less the upsampled mean of that) the
+reconstruction keeps. A k×k kernel that reweights noisy pixels keeps some of their noise in
+that band at low sample counts, which the blends alone cannot remove (docs/training.md,
+"Detail gains"). H and W must be multiples of `size_multiple` (2^(L-1)).
 """
 
 from __future__ import annotations
@@ -59,6 +64,11 @@ class _Pair(nn.Sequential):
 DEFAULT = dict(ext_width=16, ext_blocks=1, enc=(32, 48, 64, 80), dec=(32, 32, 48, 64), kernel_size=5, levels=5,
                specular_pyramid="linear")
 
+# The detail-gain heads start with zero weights and this bias: every gain at sigmoid(4) =
+# 0.982, nearly the network without them, so that a fine-tune adding them starts where its
+# checkpoint is.
+GAIN_START = 4.0
+
 
 class MSNet(nn.Module):
     """Multi-scale kernel predictor for both components (see the module docstring).
@@ -77,6 +87,7 @@ class MSNet(nn.Module):
         kernel_size: int = DEFAULT["kernel_size"],
         levels: int = DEFAULT["levels"],
         specular_pyramid: str = DEFAULT["specular_pyramid"],
+        detail_gain: bool = False,
     ):
         super().__init__()
         variant_for(in_features)
@@ -91,7 +102,7 @@ class MSNet(nn.Module):
         self.compress_inputs = True
         self.config = dict(
             arch="msnet", in_features=in_features, ext_width=ext_width, ext_blocks=ext_blocks,
-            enc=enc, dec=dec, kernel_size=kernel_size, levels=levels,
+            enc=enc, dec=dec, kernel_size=kernel_size, levels=levels, detail_gain=bool(detail_gain),
         )
         self.specular_pyramid = specular_pyramid
         taps = kernel_size * kernel_size
@@ -103,10 +114,32 @@ class MSNet(nn.Module):
         for l in range(levels - 1):
             below = dec[l + 1] if l + 1 < levels - 1 else widths[levels - 1]
             self.decoder.append(_Pair(below + widths[l], dec[l]))
-        head_in = [*dec, widths[levels - 1]]
-        self.kernel_heads = nn.ModuleList(_conv(head_in[l], COMPONENT_COUNT * taps, 1) for l in range(levels))
-        self.blend_heads = nn.ModuleList(_conv(head_in[l], COMPONENT_COUNT, 1) for l in range(levels - 1))
+        self._head_in = [*dec, widths[levels - 1]]
+        self.kernel_heads = nn.ModuleList(_conv(self._head_in[l], COMPONENT_COUNT * taps, 1) for l in range(levels))
+        self.blend_heads = nn.ModuleList(_conv(self._head_in[l], COMPONENT_COUNT, 1) for l in range(levels - 1))
+        self.gain_heads = nn.ModuleList()
         self.reset_parameters()
+        if detail_gain:
+            self.add_detail_gain()
+
+    @property
+    def detail_gain(self) -> bool:
+        return bool(self.config.get("detail_gain"))
+
+    def add_detail_gain(self) -> None:
+        """Adds the detail-gain heads (one 1x1 conv per level below the coarsest, both
+        components), zero weights and every logit at `GAIN_START`: a trained network gains
+        them for a fine-tune."""
+        if len(self.gain_heads):
+            return
+        device = self.kernel_heads[0].weight.device
+        for l in range(self.levels - 1):
+            head = _conv(self._head_in[l], COMPONENT_COUNT, 1).to(device)
+            with torch.no_grad():
+                nn.init.zeros_(head.weight)
+                nn.init.constant_(head.bias, GAIN_START)
+            self.gain_heads.append(head)
+        self.config["detail_gain"] = True
 
     @property
     def specular_pyramid(self) -> str:
@@ -139,6 +172,9 @@ class MSNet(nn.Module):
         with torch.no_grad():
             for h in [*self.kernel_heads, *self.blend_heads]:
                 h.weight.mul_(0.1)
+            for h in self.gain_heads:
+                nn.init.zeros_(h.weight)
+                nn.init.constant_(h.bias, GAIN_START)
 
     def forward(self, diffuse: torch.Tensor, specular: torch.Tensor, features: torch.Tensor):
         color = torch.cat([diffuse, specular], 1)
@@ -151,13 +187,16 @@ class MSNet(nn.Module):
             skips.append(x)
         kernels: list[torch.Tensor] = [None] * self.levels  # type: ignore[list-item]
         blends: list[torch.Tensor] = [None] * (self.levels - 1)  # type: ignore[list-item]
+        gains: list[torch.Tensor] = [None] * len(self.gain_heads)  # type: ignore[list-item]
         kernels[-1] = self.kernel_heads[-1](x)
         for l in reversed(range(self.levels - 1)):
             x = F.interpolate(x, scale_factor=2.0, mode="nearest")
             x = self.decoder[l](torch.cat([x, skips[l]], 1))
             kernels[l] = self.kernel_heads[l](x)
             blends[l] = self.blend_heads[l](x)
-        return (*kernels, *blends)
+            if gains:
+                gains[l] = self.gain_heads[l](x)
+        return (*kernels, *blends, *gains)
 
     # ----- analysis -------------------------------------------------------------------
 
@@ -223,6 +262,8 @@ class MSNet(nn.Module):
             visit(self.encoder[l], 4 ** (l + 1))
             visit(self.decoder[l], 4 ** l)
             visit(self.blend_heads[l], 4 ** l)
+        for l in range(len(self.gain_heads)):
+            visit(self.gain_heads[l], 4 ** l)
         for l in range(self.levels):
             visit(self.kernel_heads[l], 4 ** l)
         return int(round(2 * macs))
@@ -238,6 +279,7 @@ class MSNet(nn.Module):
             f"encoder {c['enc']}, decoder {c['dec']}; {c['kernel_size']}x{c['kernel_size']} kernels per level "
             f"and blends; params {self.param_count()}, receptive radius {self.receptive_radius()}"
             + ("; specular pyramid of linear means" if self.specular_pyramid == "linear" else "")
+            + ("; detail gains" if self.detail_gain else "")
         )
 
 
@@ -253,6 +295,9 @@ def add_shape_arguments(parser) -> None:
                         help="how the reconstruction's specular pyramid averages: `linear` (ln(1 + the mean of s), "
                              f"the default for a new network: {DEFAULT['specular_pyramid']}) or `log` (the mean of "
                              "ln(1 + s), networks before 2026-11-29); a fine-tune keeps its checkpoint's unless given")
+    parser.add_argument("--detail-gain", action="store_true",
+                        help="per-pixel gains on each pyramid level's own detail (MSNet.add_detail_gain); a fine-tune "
+                             "of a checkpoint without them adds them, starting near the checkpoint")
 
 
 def from_arguments(a, in_features: int) -> MSNet:
@@ -260,7 +305,8 @@ def from_arguments(a, in_features: int) -> MSNet:
     return MSNet(in_features=in_features, ext_width=a.ext_width, ext_blocks=a.ext_blocks,
                  enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
                  kernel_size=a.kernel_size, levels=a.levels,
-                 specular_pyramid=a.specular_pyramid or DEFAULT["specular_pyramid"])
+                 specular_pyramid=a.specular_pyramid or DEFAULT["specular_pyramid"],
+                 detail_gain=getattr(a, "detail_gain", False))
 
 
 @torch.no_grad()
@@ -311,7 +357,7 @@ def transplant(source: MSNet, target: MSNet) -> list[str]:
         tp[0].bias.copy_(sp[0].bias[mid])
         tp[2].weight.copy_(b[out][:, mid])
         tp[2].bias.copy_(sp[2].bias[out])
-        for heads in ("kernel_heads", "blend_heads"):
+        for heads in ("kernel_heads", "blend_heads", "gain_heads")[: 3 if source.detail_gain and target.detail_gain else 2]:
             sh, th = getattr(source, heads)[l], getattr(target, heads)[l]
             th.weight.copy_(sh.weight[:, out])
             th.bias.copy_(sh.bias)

@@ -7,6 +7,11 @@ Per component, with `c` the preprocessed noisy color `[N, 3, H, W]`:
     f_l = sum_t softmax(kernel_l)_t * c_l(x + dx_t, y + dy_t)      (edge replication)
     o_{L-1} = f_{L-1};  o_l = f_l + sigmoid(blend_l) * (up(o_{l+1}) - up(avgpool2x2(f_l)))
 
+With detail gains (`MSNet(detail_gain=True)`, graph outputs `gain_<l>`), the level's own
+detail `f_l - up(avgpool2x2(f_l))` is scaled by `sigmoid(gain_l)`:
+
+    o_l = m_l + sigmoid(gain_l) * (f_l - m_l) + sigmoid(blend_l) * (up(o_{l+1}) - m_l),  m_l = up(avgpool2x2(f_l))
+
 `up` is bilinear x2 with half-pixel centres (`align_corners=False`). `reconstruct`
 assembles both components and the final color with v1's inverse transforms.
 
@@ -130,37 +135,50 @@ def color_pyramid(color: torch.Tensor, levels: int, pyramid: str = "log") -> lis
 
 
 def component_levels(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor,
-                     filter=filter_k, pyramid: str = "log") -> list[torch.Tensor]:
+                     filter=filter_k, pyramid: str = "log",
+                     gains: Sequence[torch.Tensor] | None = None) -> list[torch.Tensor]:
     """One component at every level: `[o_0, o_1, …, o_{L-1}]`, `o_l` the reconstruction of
     levels l and coarser at 1/2^l of the resolution (`o_0` is the output); arguments as in
     `reconstruct_component`."""
     levels = len(kernels)
     if len(blends) != levels - 1:
         raise ValueError(f"{levels} kernel levels need {levels - 1} blends, got {len(blends)}")
+    if gains is not None and len(gains) != levels - 1:
+        raise ValueError(f"{levels} kernel levels need {levels - 1} detail gains, got {len(gains)}")
     pyramid = color_pyramid(color, levels, pyramid)
     filtered = [filter(kernels[l], pyramid[l]) for l in range(levels)]
     outs = [filtered[-1]]
     for l in reversed(range(levels - 1)):
         a = torch.sigmoid(blends[l].float())
         f = filtered[l]
-        outs.append(f + a * (up2(outs[-1]) - up2(F.avg_pool2d(f, 2))))
+        m = up2(F.avg_pool2d(f, 2))
+        if gains is None:
+            outs.append(f + a * (up2(outs[-1]) - m))
+        else:
+            outs.append(m + torch.sigmoid(gains[l].float()) * (f - m) + a * (up2(outs[-1]) - m))
     return outs[::-1]
 
 
 def reconstruct_component(kernels: Sequence[torch.Tensor], blends: Sequence[torch.Tensor], color: torch.Tensor,
-                          filter=filter_k, pyramid: str = "log") -> torch.Tensor:
-    """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits);
+                          filter=filter_k, pyramid: str = "log",
+                          gains: Sequence[torch.Tensor] | None = None) -> torch.Tensor:
+    """One component: `kernels[l] [N,k²,H/2^l,W/2^l]`, `blends[l] [N,1,...]` (logits),
+    `gains[l] [N,1,...]` (detail-gain logits, or None for a network without them);
     `pyramid` as in `color_pyramid`."""
-    return component_levels(kernels, blends, color, filter, pyramid)[0]
+    return component_levels(kernels, blends, color, filter, pyramid, gains)[0]
 
 
 def split_outputs(outputs: Sequence[torch.Tensor], levels: int):
-    """The network's outputs as per-component lists: ({comp: kernels}, {comp: blends})."""
-    kernels, blends = outputs[:levels], outputs[levels:]
+    """The network's outputs as per-component lists: ({comp: kernels}, {comp: blends},
+    {comp: detail gains} or None when the network has none)."""
+    kernels, blends, gains = outputs[:levels], outputs[levels:2 * levels - 1], outputs[2 * levels - 1:]
+    if len(outputs) not in (2 * levels - 1, 3 * levels - 2):
+        raise ValueError(f"{levels} levels give {2 * levels - 1} or {3 * levels - 2} outputs, got {len(outputs)}")
     taps = kernels[0].shape[1] // 2
     k = {"diffuse": [t[:, :taps] for t in kernels], "specular": [t[:, taps:] for t in kernels]}
     b = {"diffuse": [t[:, 0:1] for t in blends], "specular": [t[:, 1:2] for t in blends]}
-    return k, b
+    g = {"diffuse": [t[:, 0:1] for t in gains], "specular": [t[:, 1:2] for t in gains]} if gains else None
+    return k, b, g
 
 
 class Reconstruction(NamedTuple):
@@ -178,10 +196,11 @@ def reconstruct(outputs: Sequence[torch.Tensor], levels: int, diffuse_color: tor
                 specular_color: torch.Tensor, albedo: torch.Tensor, *, specular_pyramid: str) -> Reconstruction:
     """Both components and the final color from the network's outputs; `specular_pyramid` is
     the network's (`MSNet.specular_pyramid`)."""
-    k, b = split_outputs(outputs, levels)
-    d_levels = component_levels(k["diffuse"], b["diffuse"], diffuse_color[:, :3].float())
+    k, b, g = split_outputs(outputs, levels)
+    g = g or {"diffuse": None, "specular": None}
+    d_levels = component_levels(k["diffuse"], b["diffuse"], diffuse_color[:, :3].float(), gains=g["diffuse"])
     s_levels = component_levels(k["specular"], b["specular"], specular_color[:, :3].float(),
-                                pyramid=specular_pyramid)
+                                pyramid=specular_pyramid, gains=g["specular"])
     d = inverse_diffuse(d_levels[0], albedo)
     s = inverse_specular(s_levels[0].clamp(max=80.0))
     return Reconstruction(d_levels[0], s_levels[0], d, s, d + s, tuple(d_levels[1:]), tuple(s_levels[1:]))

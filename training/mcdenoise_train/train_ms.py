@@ -589,8 +589,13 @@ def main(argv=None) -> int:
         net = load_msnet(a.init)[0].train()
         if a.specular_pyramid:  # the weights do not depend on it: a fine-tune may switch
             net.specular_pyramid = a.specular_pyramid
-        if a.blend_shift:
+        if a.detail_gain and not net.detail_gain:
+            # Heads at sigmoid(GAIN_START): the start is nearly the checkpoint, and the network
+            # to beat, kept as best.pt until a validation does, is the checkpoint itself.
             unshifted = copy.deepcopy(net)
+            net.add_detail_gain()
+        if a.blend_shift:
+            unshifted = unshifted or copy.deepcopy(net)
             # A blend at sigmoid(-6) passes almost no gradient, so the levels below it neither
             # contribute nor learn; raising the logits lets the fine-tune decide again.
             with torch.no_grad():

@@ -116,6 +116,91 @@ def test_linear_pyramid_averages_the_specular_values():
         color_pyramid(color, 2, "geometric")
 
 
+def test_detail_gains_scale_each_levels_own_detail():
+    g = torch.Generator().manual_seed(8)
+    color = torch.rand(1, 3, 16, 24, generator=g)
+    kernels = [torch.randn(1, 9, 16 >> l, 24 >> l, generator=g) for l in range(3)]
+    blends = [torch.randn(1, 1, 16 >> l, 24 >> l, generator=g) for l in range(2)]
+    gains = [torch.randn(1, 1, 16 >> l, 24 >> l, generator=g) for l in range(2)]
+    outs = component_levels(kernels, blends, color, gains=gains)
+    f1 = filter_k(kernels[1], F.avg_pool2d(color, 2))
+    m1 = up2(F.avg_pool2d(f1, 2))
+    want1 = m1 + torch.sigmoid(gains[1]) * (f1 - m1) + torch.sigmoid(blends[1]) * (up2(outs[2]) - m1)
+    assert torch.allclose(outs[1], want1, atol=1e-6)
+    # Gains of one keep the reconstruction without them; gains of zero drop the detail.
+    ones = [torch.full_like(t, 40.0) for t in gains]
+    assert torch.allclose(reconstruct_component(kernels, blends, color, gains=ones),
+                          reconstruct_component(kernels, blends, color), atol=1e-6)
+    zeros = [torch.full_like(t, -40.0) for t in gains]
+    smooth = component_levels(kernels, blends, color, gains=zeros)
+    f0 = filter_k(kernels[0], color)
+    m0 = up2(F.avg_pool2d(f0, 2))
+    assert torch.allclose(smooth[0], m0 + torch.sigmoid(blends[0]) * (up2(smooth[1]) - m0), atol=1e-6)
+    with pytest.raises(ValueError, match="detail gains"):
+        component_levels(kernels, blends, color, gains=gains[:1])
+
+
+def test_a_network_gains_detail_heads_near_where_it_was(tmp_path):
+    from mcdenoise_train.checkpoint import load_msnet, save_msnet
+    from mcdenoise_train.msnet import GAIN_START
+
+    torch.manual_seed(2)
+    net = MSNet(28, **SMALL).eval()
+    d, s, f = _inputs(1, 32, 48)
+    with torch.no_grad():
+        before = net(d, s, f)
+        net.add_detail_gain()
+        after = net(d, s, f)
+    assert net.detail_gain and "detail gains" in net.description()
+    assert len(after) == len(before) + net.levels - 1
+    assert all(torch.equal(a, b) for a, b in zip(before, after))  # kernels and blends unchanged
+    assert all(torch.all(t == GAIN_START) for t in after[len(before):])
+    assert [tuple(t.shape) for t in after[len(before):]] == [(1, 2, 32 >> l, 48 >> l) for l in range(4)]
+    with torch.no_grad():
+        a = reconstruct(before, net.levels, d, s, torch.ones(1, 3, 32, 48), specular_pyramid="linear").total
+        b = reconstruct(after, net.levels, d, s, torch.ones(1, 3, 32, 48), specular_pyramid="linear").total
+    assert 0 < (a - b).abs().max() < 0.05 * a.abs().max()
+    assert net.flops_per_pixel() > MSNet(28, **SMALL).flops_per_pixel()
+    # The heads and the flag survive a checkpoint; a fresh network with them starts the same way.
+    with torch.no_grad():
+        net.gain_heads[1].bias.sub_(5.0)
+    save_msnet(tmp_path / "g.pt", net)
+    back = load_msnet(tmp_path / "g.pt")[0]
+    assert back.detail_gain and torch.equal(back.gain_heads[1].bias, net.gain_heads[1].bias)
+    fresh = MSNet(28, **SMALL, detail_gain=True)
+    assert all(torch.all(h.weight == 0) and torch.all(h.bias == GAIN_START) for h in fresh.gain_heads)
+
+
+def test_export_with_detail_gains(tmp_path):
+    from mcdenoise_train.export_ms import export_recon, verify_recon
+    from mcdenoise_train.recon_ms import split_outputs
+
+    torch.manual_seed(3)
+    net = MSNet(28, **SMALL, detail_gain=True).eval()
+    with torch.no_grad():
+        for h in net.gain_heads:
+            h.weight.normal_(0, 2.0)
+    export_onnx(net, tmp_path / "full" / "model.onnx", "full")
+    names = [o.name for o in onnx.load(str(tmp_path / "full" / "model.onnx")).graph.output]
+    assert names[-4:] == ["gain_0", "gain_1", "gain_2", "gain_3"]
+    assert verify_onnx(tmp_path / "full" / "model.onnx", net) < 1e-4
+    export_recon(net, tmp_path / "full" / "model-recon.onnx", "full")
+    assert verify_recon(tmp_path / "full" / "model-recon.onnx", net) < 1e-4
+    # The gains change the filtered output, so the graph must have applied them.
+    with torch.no_grad():
+        out = net(*_inputs(1, 32, 48))
+        k, b, gains = split_outputs(out, net.levels)
+        with_gains = reconstruct_component(k["diffuse"], b["diffuse"], _inputs(1, 32, 48)[0][:, :3], gains=gains["diffuse"])
+        without = reconstruct_component(k["diffuse"], b["diffuse"], _inputs(1, 32, 48)[0][:, :3])
+    assert (with_gains - without).abs().max() > 1e-3
+    with torch.no_grad():
+        net.gain_heads[0].bias.add_(3.0)
+    with pytest.raises(RuntimeError):
+        verify_onnx(tmp_path / "full" / "model.onnx", net)
+    nocov = nocov_from_full(net)
+    assert nocov.detail_gain and len(nocov.gain_heads) == 4
+
+
 def test_specular_pyramid_follows_the_network_and_old_checkpoints_read_as_log(tmp_path):
     from mcdenoise_train.checkpoint import load_msnet, save_msnet
 
@@ -249,7 +334,7 @@ def test_export_with_reconstruction_round_trip(tmp_path):
     g = torch.Generator().manual_seed(3)
     d, s, f = torch.rand(1, 10, 32, 48, generator=g), torch.rand(1, 10, 32, 48, generator=g), torch.rand(1, 28, 32, 48, generator=g)
     with torch.no_grad():
-        k, b = split_outputs(net(d, s, f), net.levels)
+        k, b, _ = split_outputs(net(d, s, f), net.levels)
         want = reconstruct_component(k["specular"], b["specular"], s[:, :3], pyramid=net.specular_pyramid).numpy()
     got = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(
         ["specular_filtered"], {"diffuse": d.numpy(), "specular": s.numpy(), "features": f.numpy()})[0]

@@ -283,6 +283,18 @@ def case_v2(tmp_path_factory):
     nets["full-log"] = log
     paths["full-log"] = paths["full"]
     export_v2(log, root / "models-log" / "full" / "model.onnx", "full")
+    # And with detail gains (outputs `gain_<l>`), far from one so that they matter.
+    gain = copy.deepcopy(full)
+    gain.add_detail_gain()
+    with torch.no_grad():
+        for h in gain.gain_heads:
+            h.weight.normal_(0, 1.0, generator=torch.Generator().manual_seed(3))
+            h.bias.fill_(0.0)
+    nets["full-gain"] = gain
+    paths["full-gain"] = paths["full"]
+    export_v2(gain, root / "models-gain" / "full" / "model.onnx", "full")
+    export_recon(gain, root / "models-gain-graph" / "full" / RECON_FILE, "full")
+    export_v2(gain, root / "models-gain-graph" / "full" / "model.onnx", "full", compression="graph")
     return dict(root=root, paths=paths, nets=nets, models=root / "models")
 
 
@@ -308,7 +320,8 @@ def test_beauty_inputs_match_the_training_side(request):
 
 
 @pytest.mark.parametrize("variant,compression", [("full", "engine"), ("nocov", "engine"), ("beauty", "engine"),
-                                                 ("full", "graph"), ("full", "graph-recon"), ("full-log", "engine")])
+                                                 ("full", "graph"), ("full", "graph-recon"), ("full-log", "engine"),
+                                                 ("full-gain", "engine"), ("full-gain", "graph-recon")])
 def test_run_matches_torch_v2(request, variant, compression):
     from mcdenoise_train.msnet import pad_to_multiple
     from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
@@ -316,7 +329,7 @@ def test_run_matches_torch_v2(request, variant, compression):
     exe = require_engine()
     case = request.getfixturevalue("case_v2")
     root, net = case["root"], case["nets"][variant]
-    served = variant.removesuffix("-log")  # full-log: the full variant of models-log
+    served = variant.removesuffix("-log").removesuffix("-gain")  # full-log: the full variant of models-log
     arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz", "--variant", served)
     t = lambda k: torch.from_numpy(arrs[k])[None]
     m = net.size_multiple
@@ -324,18 +337,20 @@ def test_run_matches_torch_v2(request, variant, compression):
     pad = lambda x: pad_to_multiple(x, m)
     with torch.no_grad():
         outputs = net(pad(t("diffuse_color")), pad(t("specular_color")), pad(t("features")))
-        kernels, blends = split_outputs(outputs, net.levels)
+        kernels, blends, gains = split_outputs(outputs, net.levels)
+        gains = gains or {c: None for c in COMPONENTS}
         pyramid = {"diffuse": "log", "specular": net.specular_pyramid}
         pre = {
             c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3],
-                                     pyramid=pyramid[c])[..., :H2, :W2].double()
+                                     pyramid=pyramid[c], gains=gains[c])[..., :H2, :W2].double()
             for c in COMPONENTS
         }
         if variant != "beauty":  # (a beauty-only frame has no specular)
             # The two specular pyramids give different outputs here: each case tells them apart.
             other = "log" if net.specular_pyramid == "linear" else "linear"
             other_pre = reconstruct_component(kernels["specular"], blends["specular"],
-                                              pad(t("specular_color"))[:, :3], pyramid=other)[..., :H2, :W2].double()
+                                              pad(t("specular_color"))[:, :3], pyramid=other,
+                                              gains=gains["specular"])[..., :H2, :W2].double()
             assert (other_pre - pre["specular"]).abs().max() > 1e-2 * pre["specular"].abs().max()
     d = inverse_diffuse(pre["diffuse"], t("albedo").double())[0].numpy()
     s = inverse_specular(pre["specular"])[0].numpy()
@@ -346,6 +361,12 @@ def test_run_matches_torch_v2(request, variant, compression):
     out = root / f"out-{variant}-{compression}.exr"
     models = case["models"] if compression == "engine" else root / "models-graph"
     models = root / "models-log" if variant == "full-log" else models
+    if variant == "full-gain":
+        models = root / ("models-gain-graph" if compression == "graph-recon" else "models-gain")
+        # The gains change the result: without them it would differ.
+        plain = {c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3], pyramid=pyramid[c])
+                 [..., :H2, :W2].double() for c in COMPONENTS}
+        assert (plain["diffuse"] - pre["diffuse"]).abs().max() > 1e-2 * pre["diffuse"].abs().max()
     where = "graph" if compression == "graph-recon" else "engine"
     engine(exe, "run", case["paths"][variant], "-o", out, "--models", models, "--reconstruction", where,
            "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", served)

@@ -435,6 +435,28 @@ def test_a_blend_shift_raises_the_blends_of_the_network_a_fine_tune_starts_from(
         train_ms.main([*small, "--out", str(shifted), "--steps", "1", "--blend-shift", "3"])
 
 
+def test_a_fine_tune_adds_detail_gains_and_they_learn(tmp_path):
+    from mcdenoise_train.msnet import GAIN_START
+
+    small, start = _tiny_start(tmp_path, "--val-every", "2")
+    gain = tmp_path / "gain"
+    assert train_ms.main([*small, "--out", str(gain), "--steps", "4", "--lr", "0.01", "--init",
+                          str(start / "best.pt"), "--detail-gain", "--export", str(tmp_path / "models")]) == 0
+    model = load_state(gain / "state.pt")["model"]
+    biases = torch.cat([model[k] for k in model if k.startswith("gain_heads.") and k.endswith(".bias")])
+    assert biases.numel() and float((biases - GAIN_START).abs().max()) > 1e-3  # the heads trained
+    # The network to beat is the start without gains (step 0); every later row is the one with them.
+    rows = [json.loads(line) for line in (gain / "val.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [0, 2, 4]
+    # Resumed, the heads are there again; a fresh network with --detail-gain has them too.
+    assert train_ms.main([*small, "--out", str(gain), "--steps", "5", "--lr", "0.01", "--init",
+                          str(start / "best.pt"), "--detail-gain", "--resume"]) == 0
+    assert json.loads((gain / "val.jsonl").read_text().splitlines()[-1])["step"] == 5
+    fresh = tmp_path / "fresh"
+    assert train_ms.main([*small, "--out", str(fresh), "--steps", "1", "--detail-gain"]) == 0
+    assert any(k.startswith("gain_heads.") for k in load_state(fresh / "state.pt")["model"])
+
+
 def test_blend_excess_is_zero_inside_the_bound_and_quadratic_beyond():
     levels = 2
     kernels = [torch.zeros(1, 4, 4, 4), torch.zeros(1, 4, 2, 2)]
