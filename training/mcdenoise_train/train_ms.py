@@ -39,6 +39,10 @@ Recipe:
   kernels learn to denoise even while the blend above them is shut, and a blend that opens
   lets in a filtered image rather than an untrained one (docs/training.md, "Every level a
   denoiser").
+- **Detail gains** (`--detail-gain`): per-pixel gains on each pyramid level's own detail
+  (`MSNet.add_detail_gain`; a fine-tune adds them near one); `--train-only gains` trains
+  those heads alone, every other weight kept as the checkpoint's (docs/training.md, "Detail
+  gains").
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine; by default 2e-3 for the
   production network, 5e-5 for the paper's, `PEAK_LR`), bf16 autocast on CUDA; with
   `--ema D`, an exponential moving average of the weights (decay D per step, from the
@@ -490,6 +494,9 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--level-loss", type=float, default=0.0, metavar="W",
                    help="add W x the SMAPE of every coarser pyramid level's reconstruction against the target "
                         "averaged to that level (losses.level_smape; 0: off)")
+    p.add_argument("--train-only", choices=("all", "gains"), default="all",
+                   help="`gains`: train the detail-gain heads alone (with --detail-gain), the rest of the network "
+                        "kept as it starts")
     p.add_argument("--teacher", default=None,
                    help="distil from this msnet checkpoint: the loss also compares the output with the teacher's "
                         "on the same patch (weight --distill)")
@@ -609,7 +616,14 @@ def main(argv=None) -> int:
     else:
         net = from_arguments(a, len(FEATURES_FULL))
     net = net.to(dev).to(memory_format=torch.channels_last)
-    opt = torch.optim.Adam(net.parameters(), lr=a.lr)
+    if a.train_only == "gains":
+        if not getattr(net, "detail_gain", False):
+            raise SystemExit("--train-only gains trains the detail-gain heads: it needs --detail-gain")
+        # Every other weight stays the checkpoint's: its kernels and blends exactly, so that
+        # what the run changes is how much of each level's detail passes.
+        for name, p in net.named_parameters():
+            p.requires_grad_(name.startswith("gain_heads."))
+    opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=a.lr)
     teacher = None
     if a.teacher:
         teacher = load_msnet(a.teacher)[0].to(dev).to(memory_format=torch.channels_last).eval()

@@ -455,6 +455,16 @@ def test_a_fine_tune_adds_detail_gains_and_they_learn(tmp_path):
     fresh = tmp_path / "fresh"
     assert train_ms.main([*small, "--out", str(fresh), "--steps", "1", "--detail-gain"]) == 0
     assert any(k.startswith("gain_heads.") for k in load_state(fresh / "state.pt")["model"])
+    # --train-only gains: every other weight stays the checkpoint's.
+    only = tmp_path / "only"
+    assert train_ms.main([*small, "--out", str(only), "--steps", "3", "--lr", "0.01", "--init",
+                          str(start / "best.pt"), "--detail-gain", "--train-only", "gains"]) == 0
+    before, after = load_msnet(start / "best.pt")[0].state_dict(), load_state(only / "state.pt")["model"]
+    assert all(torch.equal(after[k], v) for k, v in before.items())
+    assert any(not torch.equal(after[k], torch.full_like(after[k], GAIN_START)) for k in after
+               if k.startswith("gain_heads.") and k.endswith(".bias"))
+    with pytest.raises(SystemExit, match="needs --detail-gain"):
+        train_ms.main([*small, "--out", str(tmp_path / "x"), "--steps", "1", "--train-only", "gains"])
 
 
 def test_blend_excess_is_zero_inside_the_bound_and_quadratic_beyond():
