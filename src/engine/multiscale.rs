@@ -200,19 +200,28 @@ fn blend(
     let (sx, sy) = (span.x / 2, span.y / 2);
     let (sw, sh) = (span.w / 2, span.h / 2);
     let sn = span.pixels();
-    // p = avgpool(f) and d = coarse − p over the span's coarse pixels.
-    let mut p = vec![0f32; 3 * sw * sh];
+    // d = coarse − avgpool(f) over the span's coarse pixels; with gains, p = avgpool(f) as well
+    // (a network without them never reads it, so it is not allocated).
+    let mut p = vec![0f32; if gain.is_some() { 3 * sw * sh } else { 0 }];
     let mut d = vec![0f32; 3 * sw * sh];
-    p.par_chunks_mut(sw).zip(d.par_chunks_mut(sw)).enumerate().for_each(|(row, (p, d))| {
+    let pool = |row: usize, d: &mut [f32], mut p: Option<&mut [f32]>| {
         let (c, y) = (row / sh, row % sh);
         let top = &f[c * sn + 2 * y * span.w..][..span.w];
         let bottom = &f[c * sn + (2 * y + 1) * span.w..][..span.w];
         let co = &coarse[c * wc * hc + (sy + y) * wc + sx..][..sw];
         for x in 0..sw {
-            p[x] = (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
-            d[x] = co[x] - p[x];
+            let mean = (top[2 * x] + top[2 * x + 1] + bottom[2 * x] + bottom[2 * x + 1]) * 0.25;
+            d[x] = co[x] - mean;
+            if let Some(p) = p.as_deref_mut() {
+                p[x] = mean;
+            }
         }
-    });
+    };
+    if gain.is_some() {
+        d.par_chunks_mut(sw).zip(p.par_chunks_mut(sw)).enumerate().for_each(|(row, (d, p))| pool(row, d, Some(p)));
+    } else {
+        d.par_chunks_mut(sw).enumerate().for_each(|(row, d)| pool(row, d, None));
+    }
     let tn = target.pixels();
     let (o0, rest) = out.split_at_mut(tn);
     let (o1, o2) = rest.split_at_mut(tn);

@@ -47,22 +47,27 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert f"--out {tmp_path / 'a'} --scenes 2 --seed-base 500000 --size 384" in a
     assert "--scenes 2 --seed-base 510000" in b and "--families dof,interior,textures,room,open,metals" in b
     assert "--test-scenes 8 --size 128 --spp 4,16,64 --ref-spp 4096 --renderer mitsuba" in test
+    # DOF_SCENES (3) within DOF_FIRST (8): the whole set before the scenes of every family.
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
     # With Cycles: Cycles' test scenes right after Mitsuba's (no run is judged without both),
-    # then the depth-of-field training scenes (minutes each), the Mitsuba training scenes of
-    # every family (minutes each, where a Cycles scene takes most of an hour), Cycles' judging
-    # scenes (the families where its test frames lose most to OIDN) and its training scenes
-    # (every family, at the training sets' size).
-    lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5"}, "render").stdout.splitlines()
-    assert len(lines) == 8 and "--seed-base 620000" in lines[4]
+    # then DOF_FIRST depth-of-field training scenes (minutes each), the Mitsuba training
+    # scenes of every family (minutes each, where a Cycles scene takes most of an hour),
+    # Cycles' judging scenes (the families where its test frames lose most to OIDN), its
+    # training scenes (every family, at the training sets' size) and the rest of the
+    # depth-of-field scenes.
+    lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5", "DOF_SCENES": "24"},
+                 "render").stdout.splitlines()
+    assert len(lines) == 9
     assert lines[2].endswith("--renderer mitsuba") and lines[3].endswith("--renderer cycles")
     assert "--test-scenes 8" in lines[3]
+    assert "--scenes 8 --seed-base 620000" in lines[4] and "--families dof,open" in lines[4]
     assert "--seed-base 600000" in lines[5] and lines[5].endswith("--renderer mitsuba")
     assert "--scenes 6 --seed-base 520988 --size 384 --spp 4,16,64 --ref-spp 2048" in lines[6]
     assert lines[6].endswith("--renderer cycles --families dof,caustics,metals,interior,room")
     assert "--scenes 5 --seed-base 630000 --size 384" in lines[7] and lines[7].endswith("--renderer cycles")
     assert "--families" not in lines[7]
+    assert "--scenes 24 --seed-base 620000" in lines[8] and "--families dof,open" in lines[8]
 
 
 def test_the_cycles_judging_seeds_give_the_scenes_the_pipeline_names():
