@@ -42,7 +42,8 @@ Recipe:
 - **Detail gains** (`--detail-gain`): per-pixel gains on each pyramid level's own detail
   (`MSNet.add_detail_gain`; a fine-tune adds them near one); `--train-only gains` trains
   those heads alone, every other weight kept as the checkpoint's (docs/training.md, "Detail
-  gains").
+  gains"); `--train-only gains,blends` (or any set of `gains`, `blends`, `kernels`) the
+  1x1 heads named.
 - **Schedule**: Adam, one-cycle learning rate (`--lr` peak, cosine; by default 2e-3 for the
   production network, 5e-5 for the paper's, `PEAK_LR`), bf16 autocast on CUDA; with
   `--ema D`, an exponential moving average of the weights (decay D per step, from the
@@ -432,6 +433,21 @@ def export_lin2020(checkpoint: Path, models: Path) -> None:
 PEAK_LR = {"msnet": 2e-3, "lin2020": 5e-5}
 
 
+# The heads --train-only can train alone: their parameters' prefixes in MSNet.
+HEAD_MODULES = {"gains": "gain_heads.", "blends": "blend_heads.", "kernels": "kernel_heads."}
+
+
+def train_only(value: str) -> str:
+    """`all`, or a comma-separated set of HEAD_MODULES' names (argparse type)."""
+    if value == "all":
+        return value
+    heads = value.split(",")
+    unknown = [h for h in heads if h not in HEAD_MODULES]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"{value!r}: `all` or a comma-separated set of {', '.join(HEAD_MODULES)}")
+    return ",".join(dict.fromkeys(heads))
+
+
 def parse(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", action="append", required=True, help="data set directory (repeatable)")
@@ -494,9 +510,10 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--level-loss", type=float, default=0.0, metavar="W",
                    help="add W x the SMAPE of every coarser pyramid level's reconstruction against the target "
                         "averaged to that level (losses.level_smape; 0: off)")
-    p.add_argument("--train-only", choices=("all", "gains"), default="all",
-                   help="`gains`: train the detail-gain heads alone (with --detail-gain), the rest of the network "
-                        "kept as it starts")
+    p.add_argument("--train-only", type=train_only, default="all",
+                   help="`all`, or a comma-separated set of the 1x1 heads to train, every other weight kept as it "
+                        "starts: `gains` (the detail-gain heads, with --detail-gain), `blends`, `kernels`; e.g. "
+                        "`gains,blends`")
     p.add_argument("--teacher", default=None,
                    help="distil from this msnet checkpoint: the loss also compares the output with the teacher's "
                         "on the same patch (weight --distill)")
@@ -616,13 +633,15 @@ def main(argv=None) -> int:
     else:
         net = from_arguments(a, len(FEATURES_FULL))
     net = net.to(dev).to(memory_format=torch.channels_last)
-    if a.train_only == "gains":
-        if not getattr(net, "detail_gain", False):
+    if a.train_only != "all":
+        heads = a.train_only.split(",")
+        if "gains" in heads and not getattr(net, "detail_gain", False):
             raise SystemExit("--train-only gains trains the detail-gain heads: it needs --detail-gain")
-        # Every other weight stays the checkpoint's: its kernels and blends exactly, so that
-        # what the run changes is how much of each level's detail passes.
+        # Every other weight stays the checkpoint's (with `gains` alone, its kernels and blends
+        # exactly, so that what the run changes is how much of each level's detail passes).
+        prefixes = tuple(HEAD_MODULES[h] for h in heads)
         for name, p in net.named_parameters():
-            p.requires_grad_(name.startswith("gain_heads."))
+            p.requires_grad_(name.startswith(prefixes))
     opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=a.lr)
     teacher = None
     if a.teacher:

@@ -465,6 +465,15 @@ def test_a_fine_tune_adds_detail_gains_and_they_learn(tmp_path):
                if k.startswith("gain_heads.") and k.endswith(".bias"))
     with pytest.raises(SystemExit, match="needs --detail-gain"):
         train_ms.main([*small, "--out", str(tmp_path / "x"), "--steps", "1", "--train-only", "gains"])
+    # --train-only gains,blends: those two kinds of heads move, the kernel heads and the trunk stay.
+    heads = tmp_path / "heads"
+    assert train_ms.main([*small, "--out", str(heads), "--steps", "3", "--lr", "0.01", "--init",
+                          str(start / "best.pt"), "--detail-gain", "--train-only", "gains,blends"]) == 0
+    after = load_state(heads / "state.pt")["model"]
+    moved = {k for k, v in before.items() if not torch.equal(after[k], v)}
+    assert moved and all(k.startswith("blend_heads.") for k in moved)
+    with pytest.raises(SystemExit):
+        train_ms.main([*small, "--out", str(tmp_path / "y"), "--steps", "1", "--train-only", "gains,trunk"])
 
 
 def test_blend_excess_is_zero_inside_the_bound_and_quadratic_beyond():
