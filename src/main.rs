@@ -34,18 +34,23 @@ fn init_cli_logging() {
         .init();
 }
 
-/// Allocations of 1 MB and more (frame planes, a region's tensors, ONNX Runtime's arena
-/// extensions) are mapped and unmapped one by one, so that what a frame frees goes back to
-/// the system. glibc's default threshold starts at 128 KB and rises to the largest block
-/// freed (up to 32 MB), after which such blocks come from heaps that several threads
-/// fragment: `mcdenoise run` on one 3840×2160 frame peaked anywhere between 1.37 and
-/// 1.53 GB from run to run, and at 1.43 GB each time with the fixed threshold, for the
-/// same time (docs/results/speed-work.md).
+/// Allocations of 4 MB and more (a 4K frame's planes, a region's tensors, ONNX Runtime's
+/// arena extensions) are mapped and unmapped one by one, so that what a large frame frees
+/// goes back to the system; smaller blocks (a 720p frame's planes are 1.8–3.7 MB) come from
+/// the heaps, which keep up to 128 MB free at their top, so that the next stage reuses the
+/// pages the last one freed instead of having the kernel fault in and zero new ones.
+/// glibc's default mmap threshold starts at 128 KB and rises to the largest block freed (up
+/// to 32 MB), after which a 4K frame's planes come from heaps that several threads fragment:
+/// `mcdenoise run` on one 3840×2160 frame peaked anywhere between 1.37 and 1.53 GB from run
+/// to run. With a fixed 1 MB threshold it peaked at 1.43–1.46 GB, and with these two values
+/// at 1.47 GB in 30 s instead of 31–34 s, while a 720p run spends a third less time in the
+/// kernel (docs/results/speed-work.md).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn tune_allocator() {
-    // SAFETY: mallopt only sets a parameter of the allocator; called before any thread starts.
+    // SAFETY: mallopt only sets parameters of the allocator; called before any thread starts.
     unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 4 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, 128 << 20);
     }
 }
 
