@@ -134,12 +134,16 @@ class MSNet(nn.Module):
             return
         device = self.kernel_heads[0].weight.device
         for l in range(self.levels - 1):
-            head = _conv(self._head_in[l], COMPONENT_COUNT, 1).to(device)
-            with torch.no_grad():
-                nn.init.zeros_(head.weight)
-                nn.init.constant_(head.bias, GAIN_START)
-            self.gain_heads.append(head)
+            self.gain_heads.append(_conv(self._head_in[l], COMPONENT_COUNT, 1).to(device))
+        self._start_gains()
         self.config["detail_gain"] = True
+
+    @torch.no_grad()
+    def _start_gains(self) -> None:
+        """Every detail-gain head at its start: zero weights, every logit at `GAIN_START`."""
+        for h in self.gain_heads:
+            nn.init.zeros_(h.weight)
+            nn.init.constant_(h.bias, GAIN_START)
 
     @property
     def specular_pyramid(self) -> str:
@@ -172,9 +176,7 @@ class MSNet(nn.Module):
         with torch.no_grad():
             for h in [*self.kernel_heads, *self.blend_heads]:
                 h.weight.mul_(0.1)
-            for h in self.gain_heads:
-                nn.init.zeros_(h.weight)
-                nn.init.constant_(h.bias, GAIN_START)
+        self._start_gains()
 
     def forward(self, diffuse: torch.Tensor, specular: torch.Tensor, features: torch.Tensor):
         color = torch.cat([diffuse, specular], 1)
