@@ -76,23 +76,25 @@ def stored_as_engine(ch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-# The engine's albedo prefilter (src/engine/albedo.rs): window and patch radii, distance
-# scale, the share of the variance subtracted, and the floor of the normalisation.
+# The engine's albedo prefilter (src/engine/albedo.rs): window and patch radii, the distance
+# scale of each pass, the share of the variance subtracted, and the floor of the normalisation.
 ALBEDO_RADIUS = 3
 ALBEDO_PATCH = 1
-ALBEDO_K = 0.7
+ALBEDO_PASSES = (0.7, 1.0)
 ALBEDO_ALPHA = 1.0
 ALBEDO_EPS = 1e-10
 ALBEDO_MAX_REFLECTANCE = 1.0
 
 
-def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
-    """The engine's albedo prefilter (src/engine/albedo.rs, `--albedo-prefilter on`) of
+def nl_means_pass(albedo: np.ndarray, variance: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """One pass of the engine's albedo prefilter (`nl_means` in src/engine/albedo.rs) of
     `albedo [3, H, W]` with the variance of its pixel means `variance [H, W]`: non-local
     means over a 7×7 window with 3×3 patches, the pair distance `(mean_c (a_p − a_q)² −
     α (v_p + min(v_p, v_q))) / (ε + k² (v_p + v_q))`, the weight `exp(−max(patch mean, 0))`,
     coordinates clamped to the frame. A pixel above 1 in a channel (an emitter's strength in
-    the albedo pass) keeps its value and weighs nothing in its neighbours' means."""
+    the albedo pass) keeps its value and weighs nothing in its neighbours' means. Returns the
+    filtered albedo and the variance of each pixel's weighted mean, `Σ w² v_q / (Σ w)²` (a
+    pixel that is no reflectance keeps its own)."""
     a = np.asarray(albedo, np.float32)
     _, h, w = a.shape
     v = np.asarray(variance, np.float32)
@@ -102,9 +104,10 @@ def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
     ap = np.pad(a, ((0, 0), (r, r), (r, r)), mode="edge")
     rp = np.pad(reflectance, r, mode="edge")
     vp = np.pad(v, r, mode="edge")
-    k2 = np.float32(ALBEDO_K * ALBEDO_K)
+    k2 = np.float32(k * k)
     num = np.zeros_like(a)
     den = np.zeros_like(v)
+    vnum = np.zeros_like(v)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             aq = ap[:, r + dy:r + dy + h, r + dx:r + dx + w]
@@ -116,8 +119,23 @@ def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
             weight = np.exp(-np.maximum(patch / np.float32((2 * f + 1) ** 2), 0)).astype(np.float32)
             weight *= rp[r + dy:r + dy + h, r + dx:r + dx + w]
             num += weight * aq
+            vnum += weight * weight * vq
             den += weight
-    return np.where(reflectance, num / np.where(reflectance, den, 1), a).astype(np.float32)
+    safe = np.where(reflectance, den, 1)
+    filtered = np.where(reflectance, num / safe, a).astype(np.float32)
+    return filtered, np.where(reflectance, vnum / (safe * safe), v).astype(np.float32)
+
+
+def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
+    """The engine's albedo prefilter (`passes` in src/engine/albedo.rs, `--albedo-prefilter
+    on`): `nl_means_pass` with the first distance scale of `ALBEDO_PASSES`, then again over
+    its result and the variance of its weighted means with the second, where a pixel without
+    variance of its own (an exact albedo) keeps the first pass's value."""
+    v = np.asarray(variance, np.float32)
+    exact = ~(np.isfinite(v) & (v > 0))
+    first, v1 = nl_means_pass(albedo, v, ALBEDO_PASSES[0])
+    second, _ = nl_means_pass(first, v1, ALBEDO_PASSES[1])
+    return np.where(exact[None], first, second)
 
 
 def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) -> tuple[np.ndarray, float, float]:

@@ -80,7 +80,7 @@ from .exr import read_exr
 from .files import append_jsonl, atomic_path, open_append
 from .model import DenoiserNet, paper_config
 from .msnet import MSNet, add_shape_arguments, from_arguments, pad_to_multiple, transplant
-from .preprocess import ALBEDO, DIFFUSE, SPECULAR, VAR, as_beauty, preprocess, raw_from_channels, targets
+from .preprocess import ALBEDO, ALBEDO_PASSES, DIFFUSE, SPECULAR, VAR, as_beauty, preprocess, raw_from_channels, targets
 from .recon import reconstruct as _recon_v1
 from .recon_ms import reconstruct
 
@@ -95,7 +95,9 @@ def load_raw(record: dict, cache: Path | None, albedo_prefilter: bool = True) ->
     unless `albedo_prefilter` is false), reference diffuse/specular and frame maxima (cached
     as .npz beside the data when `cache` is given)."""
     if cache is not None:
-        p = cache / (Path(record["noisy"]).stem + ("" if albedo_prefilter else "-albedo-off") + ".npz")
+        # The prefilter's parameters name the file: a cache of another prefilter is not read.
+        prefilter = "-albedo-" + ("-".join(f"{k:g}" for k in ALBEDO_PASSES) if albedo_prefilter else "off")
+        p = cache / (Path(record["noisy"]).stem + prefilter + ".npz")
         if p.exists() and p.stat().st_mtime >= max(os.path.getmtime(record["noisy"]), os.path.getmtime(record["reference"])):
             with np.load(p) as z:
                 return {k: z[k] for k in z.files}

@@ -15,8 +15,8 @@ from mcdenoise_train.checkpoint import load_msnet, load_state, save_msnet, save_
 from mcdenoise_train.export_ms import read_metadata_v2
 from mcdenoise_train.exr import read_exr, write_exr
 from mcdenoise_train.frames import synthetic_frame
-from mcdenoise_train.preprocess import (ALBEDO, DIFFUSE, RAW, SPECULAR, VAR, prefilter_albedo, preprocess,
-                                        raw_from_channels, targets)
+from mcdenoise_train.preprocess import (ALBEDO, ALBEDO_PASSES, DIFFUSE, RAW, SPECULAR, VAR, nl_means_pass,
+                                        prefilter_albedo, preprocess, raw_from_channels, targets)
 
 from test_train import make_dataset, needs_engine
 
@@ -76,11 +76,12 @@ def test_the_albedo_prefilter_is_the_engines(tmp_path):
     np.testing.assert_allclose(tg["diffuse_target"][0].numpy(), engine["diffuse_target"], rtol=1e-5, atol=1e-6)
 
 
-def test_the_albedo_prefilter_follows_its_method():
-    # src/engine/albedo.rs written out pixel by pixel in float64, on a frame smaller than
-    # the window in one direction so that clamping matters.
+@pytest.mark.parametrize("k", ALBEDO_PASSES)
+def test_the_albedo_prefilter_follows_its_method(k):
+    # One pass of src/engine/albedo.rs written out pixel by pixel in float64, on a frame
+    # smaller than the window in one direction so that clamping matters.
     rng = np.random.default_rng(0)
-    h, w, r, f, k = 9, 6, 3, 1, 0.7
+    h, w, r, f = 9, 6, 3, 1
     a = rng.uniform(0, 1, (3, h, w)).astype(np.float32)
     a[:, :, 4] = a[:, :, 3]  # equal pixels without variance
     v = (rng.uniform(0, 0.05, (h, w)) * (rng.uniform(size=(h, w)) > 0.3)).astype(np.float32)
@@ -94,24 +95,43 @@ def test_the_albedo_prefilter_follows_its_method():
         vp, vq = float(v[py, px]), float(v[qy, qx])
         return (diff - (vp + min(vp, vq))) / (1e-10 + k * k * (vp + vq))
 
-    want = np.zeros((3, h, w))
+    want, want_v = np.zeros((3, h, w)), np.zeros((h, w))
     for y in range(h):
         for x in range(w):
-            num, den = np.zeros(3), 0.0
+            num, den, var = np.zeros(3), 0.0, 0.0
             for dy in range(-r, r + 1):
                 for dx in range(-r, r + 1):
                     patch = np.mean([d(cl(y + i, h), cl(x + j, w), cl(cl(y + i, h) + dy, h), cl(cl(x + j, w) + dx, w))
                                      for i in range(-f, f + 1) for j in range(-f, f + 1)])
                     weight = np.exp(-max(patch, 0.0)) * float((a[:, cl(y + dy, h), cl(x + dx, w)] <= 1).all())
                     num += weight * a[:, cl(y + dy, h), cl(x + dx, w)]
+                    var += weight * weight * float(v[cl(y + dy, h), cl(x + dx, w)])
                     den += weight
-            want[:, y, x] = num / den if (a[:, y, x] <= 1).all() else a[:, y, x]
-    got = prefilter_albedo(a, v)
+            keep = not (a[:, y, x] <= 1).all()
+            want[:, y, x] = a[:, y, x] if keep else num / den
+            want_v[y, x] = v[y, x] if keep else var / (den * den)
+    got, got_v = nl_means_pass(a, v, k)
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(got_v, want_v, rtol=1e-5, atol=1e-9)
     assert np.abs(got - a).max() > 1e-2, "noisy pixels move"
     others = (a <= 1).all(0)
+    assert got_v[others].mean() < v[others].mean(), "weighted means have less variance"
     assert got[:, others].max() <= 1, "the emitter pulls no neighbour"
     assert np.array_equal(got[:, 2, 1], a[:, 2, 1]), "and keeps its value"
+
+
+def test_the_albedo_prefilter_is_its_passes_in_turn_exact_pixels_kept():
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 1, (3, 12, 10)).astype(np.float32)
+    v = rng.uniform(0, 0.05, (12, 10)).astype(np.float32)
+    v[::3, ::2] = 0  # exact pixels
+    first, v1 = nl_means_pass(a, v, ALBEDO_PASSES[0])
+    second = nl_means_pass(first, v1, ALBEDO_PASSES[1])[0]
+    got = prefilter_albedo(a, v)
+    np.testing.assert_array_equal(got[:, v > 0], second[:, v > 0])
+    np.testing.assert_array_equal(got[:, v == 0], first[:, v == 0], "an exact pixel keeps the first pass's value")
+    assert np.abs(got - first).max() > 1e-3, "the second pass moves what the first left"
+    assert np.abs(second - first)[:, v == 0].max() > 1e-4, "which it would move at exact pixels too"
 
 
 def _raw_batch(n=3, size=33, seed=0):

@@ -75,7 +75,7 @@ def test_training_frames_have_the_albedo_the_engine_gives_the_networks(tmp_path)
     np.testing.assert_array_equal(on["raw"][ALBEDO], filtered.astype(np.float16).astype(np.float32))
     assert not np.array_equal(on["raw"][ALBEDO], filtered)
     assert np.abs(on["raw"][ALBEDO] - off["raw"][ALBEDO]).max() > 1e-3
-    assert sorted(p.name for p in cache.iterdir()) == ["a-albedo-off.npz", "a.npz"]
+    assert sorted(p.name for p in cache.iterdir()) == ["a-albedo-0.7-1.npz", "a-albedo-off.npz"]
     assert np.array_equal(load_raw(rec, cache)["raw"], on["raw"]), "read back from its own cache file"
     assert parse(["--data", "x", "--out", "y"]).albedo_prefilter == "on"
     assert parse(["--data", "x", "--out", "y", "--albedo-prefilter", "off"]).albedo_prefilter == "off"
