@@ -133,34 +133,30 @@ pub fn prefilter(frame: &Frame, mode: AlbedoPrefilter) -> Option<Frame> {
 /// The method of the module doc, both passes, on planes of `w × h`.
 pub fn passes(albedo: [PlaneRef<'_>; 3], variance: Vec<f32>, w: usize, h: usize) -> [Plane; 3] {
     let exact: Vec<bool> = variance.iter().map(|v| !(v.is_finite() && *v > 0.0)).collect();
-    let (first, variance) = nl_means(albedo, variance, w, h, PASSES[0]);
-    let (mut second, _) = nl_means(first.each_ref().map(|p| PlaneRef::F32(p)), variance, w, h, PASSES[1]);
-    for (out, kept) in second.iter_mut().zip(&first) {
-        for ((o, k), _) in out.iter_mut().zip(kept).zip(&exact).filter(|(_, exact)| **exact) {
-            *o = *k;
-        }
-    }
-    second
+    let (first, variance) = nl_means(albedo, variance, w, h, PASSES[0], None);
+    nl_means(first.each_ref().map(|p| PlaneRef::F32(p)), variance, w, h, PASSES[1], Some(&exact)).0
 }
 
 /// One pass of the method (steps 1–3 with distance scale `k`) on planes of `w × h`
 /// (`variance` is cleaned in place: non-finite and negative values become 0): the filtered
 /// albedo and the variance of each pixel's weighted mean (a pixel that is no reflectance
-/// keeps its own). Beyond its output and `variance` it holds only each band's rows, so
-/// that a 4K frame costs little memory.
+/// keeps its own). The pixels `keep` marks keep their value and variance (their weights are
+/// not computed where a whole row of a strip is kept). Beyond its output and `variance` it
+/// holds only each band's rows, so that a 4K frame costs little memory.
 pub fn nl_means(
     albedo: [PlaneRef<'_>; 3],
     mut variance: Vec<f32>,
     w: usize,
     h: usize,
     k: f32,
+    keep: Option<&[bool]>,
 ) -> ([Plane; 3], Vec<f32>) {
     for v in &mut variance {
         if !(v.is_finite() && *v > 0.0) {
             *v = 0.0;
         }
     }
-    let frame = Planes { albedo, variance, w, h, k2: k * k };
+    let frame = Planes { albedo, variance, w, h, k2: k * k, keep };
     let band_filter = band_filter();
     let mut out: [Plane; 3] = std::array::from_fn(|_| vec![0f32; w * h]);
     let mut out_variance = vec![0f32; w * h];
@@ -191,6 +187,8 @@ struct Planes<'a> {
     h: usize,
     /// `k²` of the pass.
     k2: f32,
+    /// The pixels that keep their value.
+    keep: Option<&'a [bool]>,
 }
 
 type BandFilter = fn(&Planes<'_>, usize, [&mut [f32]; 4]);
@@ -328,7 +326,7 @@ fn row_sums<'a, M: MulAdd>(
 /// multiply-adds (the outputs differ from the plain build's by about 1e-7 relative).
 #[inline(always)]
 fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 4]) {
-    let Planes { albedo, variance, w, h, k2 } = planes;
+    let Planes { albedo, variance, w, h, k2, keep } = planes;
     let (w, h, k2) = (*w, *h, *k2);
     let rows = out[0].len() / w;
     // The rows the band reads, as f32: its own, the patch margin and the window's reach.
@@ -371,6 +369,17 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
         for yr in 0..rows {
             let y = y0 + yr;
             row_sums::<M>(&at, h, w, x0, x1, &offsets, k2, clamp(y as isize + 1, h), (y + 1) % 3, &mut ring, &mut d);
+            let p = (y - lo) * w;
+            let kept = keep.map(|k| &k[y * w + x0..y * w + x1]);
+            if kept.is_some_and(|k| k.iter().all(|&k| k)) {
+                // The whole row of the strip keeps its value: no weights to compute.
+                let [o0, o1, o2, ov] = &mut out;
+                for (c, o) in [o0, o1, o2].into_iter().enumerate() {
+                    o[yr * w + x0..yr * w + x1].copy_from_slice(&albedo[c][p + x0..p + x1]);
+                }
+                ov[yr * w + x0..yr * w + x1].copy_from_slice(&v[p + x0..p + x1]);
+                continue;
+            }
             let (s0, s1, s2) = ((y + 2) % 3, y % 3, (y + 1) % 3);
             num.iter_mut().for_each(|n| n[..sw].fill(0.0));
             den[..sw].fill(0.0);
@@ -410,17 +419,17 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
                     );
                 }
             }
-            let p = (y - lo) * w;
             let [o0, o1, o2, ov] = &mut out;
+            let filtered = |i: usize| reflectance[p + x0 + i] > 0.0 && !kept.is_some_and(|k| k[i]);
             for (c, o) in [o0, o1, o2].into_iter().enumerate() {
                 for i in 0..sw {
                     let x = x0 + i;
-                    o[yr * w + x] = if reflectance[p + x] > 0.0 { num[c][i] / den[i] } else { albedo[c][p + x] };
+                    o[yr * w + x] = if filtered(i) { num[c][i] / den[i] } else { albedo[c][p + x] };
                 }
             }
             for i in 0..sw {
                 let x = x0 + i;
-                ov[yr * w + x] = if reflectance[p + x] > 0.0 { num[3][i] / (den[i] * den[i]) } else { v[p + x] };
+                ov[yr * w + x] = if filtered(i) { num[3][i] / (den[i] * den[i]) } else { v[p + x] };
             }
         }
     }
@@ -454,7 +463,7 @@ mod tests {
             albedo[1][40 * w + 4] = 30.0;
         }
         let v: Vec<f32> = (0..w * h).map(|i| if i % 7 == 0 { 0.0 } else { 0.02 * lcg(&mut seed) }).collect();
-        let (got, got_variance) = nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), v.clone(), w, h, k);
+        let (got, got_variance) = nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), v.clone(), w, h, k, None);
         let at = |y: isize, x: isize| y.clamp(0, h as isize - 1) as usize * w + x.clamp(0, w as isize - 1) as usize;
         let refl = |i: usize| albedo.iter().all(|p| p[i] <= MAX_REFLECTANCE);
         let d = |p: usize, q: usize| {
@@ -507,21 +516,24 @@ mod tests {
         let (w, h) = (17, 13);
         let mut seed = 11;
         let albedo: [Plane; 3] = std::array::from_fn(|_| (0..w * h).map(|_| 0.4 + 0.2 * lcg(&mut seed)).collect());
-        // Every third pixel exact (no variance), the rest noisy.
-        let v: Vec<f32> = (0..w * h).map(|i| if i % 3 == 0 { 0.0 } else { 0.01 }).collect();
+        // The first four rows exact (no variance: the second pass skips them), then every
+        // third pixel, the rest noisy.
+        let exact = |i: usize| i < 4 * w || i % 3 == 0;
+        let v: Vec<f32> = (0..w * h).map(|i| if exact(i) { 0.0 } else { 0.01 }).collect();
         let planes = albedo.each_ref().map(|p| PlaneRef::F32(p));
-        let (first, v1) = nl_means(planes, v.clone(), w, h, PASSES[0]);
-        let (second, _) = nl_means(first.each_ref().map(|p| PlaneRef::F32(p)), v1, w, h, PASSES[1]);
+        let (first, v1) = nl_means(planes, v.clone(), w, h, PASSES[0], None);
+        let (second, _) = nl_means(first.each_ref().map(|p| PlaneRef::F32(p)), v1, w, h, PASSES[1], None);
         let got = passes(planes, v, w, h);
-        let mut moved = 0;
+        let (mut moved, mut skipped) = (0, 0);
         for c in 0..3 {
             for i in 0..w * h {
-                let want = if i % 3 == 0 { first[c][i] } else { second[c][i] };
+                let want = if exact(i) { first[c][i] } else { second[c][i] };
                 assert_eq!(got[c][i], want, "channel {c}, pixel {i}");
-                moved += usize::from(i % 3 == 0 && second[c][i] != first[c][i]);
+                moved += usize::from(exact(i) && i >= 4 * w && second[c][i] != first[c][i]);
+                skipped += usize::from(i < 4 * w && second[c][i] != first[c][i]);
             }
         }
-        assert!(moved > 0, "the second pass alone would move exact pixels");
+        assert!(moved > 0 && skipped > 0, "the second pass alone would move exact pixels, skipped rows too");
     }
 
     #[test]
@@ -530,7 +542,8 @@ mod tests {
         let mut seed = 1;
         let albedo: [Plane; 3] = std::array::from_fn(|_| (0..w * h).map(|_| lcg(&mut seed)).collect());
         for k in PASSES {
-            let (out, variance) = nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), vec![0.0; w * h], w, h, k);
+            let (out, variance) =
+                nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), vec![0.0; w * h], w, h, k, None);
             assert_eq!(out, albedo);
             assert!(variance.iter().all(|&v| v == 0.0));
         }
@@ -548,7 +561,7 @@ mod tests {
             (0..w * h).map(|i| if i % w == line { 0.9 } else { 0.5 } + 0.1 * (lcg(&mut seed) - 0.5)).collect();
         let variance = vec![0.1f32 * 0.1 / 12.0; w * h];
         let albedo = [PlaneRef::F32(&plane), PlaneRef::F32(&plane), PlaneRef::F32(&plane)];
-        let (first, _) = nl_means(albedo, variance.clone(), w, h, PASSES[0]);
+        let (first, _) = nl_means(albedo, variance.clone(), w, h, PASSES[0], None);
         let both = passes(albedo, variance, w, h);
         let err = |p: &[f32]| -> f32 {
             p.iter().enumerate().filter(|(i, _)| i % w != line).map(|(_, v)| (v - 0.5).powi(2)).sum()
