@@ -130,9 +130,15 @@ pub fn prefilter(frame: &Frame, mode: AlbedoPrefilter) -> Option<Frame> {
     Some(out)
 }
 
+/// Whether a variance sample says nothing is noise: zero, negative or not finite (taken as
+/// 0 by the filter; a pixel with it has an exact albedo for the second pass).
+fn without_variance(v: f32) -> bool {
+    !(v.is_finite() && v > 0.0)
+}
+
 /// The method of the module doc, both passes, on planes of `w × h`.
 pub fn passes(albedo: [PlaneRef<'_>; 3], variance: Vec<f32>, w: usize, h: usize) -> [Plane; 3] {
-    let exact: Vec<bool> = variance.iter().map(|v| !(v.is_finite() && *v > 0.0)).collect();
+    let exact: Vec<bool> = variance.iter().map(|&v| without_variance(v)).collect();
     let (first, variance) = nl_means(albedo, variance, w, h, PASSES[0], None);
     nl_means(first.each_ref().map(|p| PlaneRef::F32(p)), variance, w, h, PASSES[1], Some(&exact)).0
 }
@@ -152,7 +158,7 @@ pub fn nl_means(
     keep: Option<&[bool]>,
 ) -> ([Plane; 3], Vec<f32>) {
     for v in &mut variance {
-        if !(v.is_finite() && *v > 0.0) {
+        if without_variance(*v) {
             *v = 0.0;
         }
     }
