@@ -343,11 +343,12 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     if set == FeatureSet::Nocov {
         frame.remove(Buffer::Covariance);
     }
-    let (handled, report) = engine::handle_fireflies(&frame, args.fireflies.settings());
+    let beauty = args.variant.resolve() == Some(Variant::Beauty);
+    let fields = args.variant.resolve().is_none_or(engine::firefly_fields);
+    let (handled, report) = engine::handle_fireflies(&frame, args.fireflies.settings(), fields);
     if let Some(handled) = handled {
         frame = handled;
     }
-    let beauty = args.variant.resolve() == Some(Variant::Beauty);
     if let Some(prepared) = engine::prepare(&frame, args.albedo.albedo_prefilter, beauty) {
         frame = prepared;
     }

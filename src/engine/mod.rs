@@ -395,7 +395,8 @@ impl Engine {
         let frame = exposed.as_ref().unwrap_or(frame);
         timings.preprocess += t.elapsed();
         let t = Instant::now();
-        let (handled, report) = self.pool.install(|| handle_fireflies(frame, options.fireflies));
+        let fields = firefly_fields(variant);
+        let (handled, report) = self.pool.install(|| handle_fireflies(frame, options.fireflies, fields));
         let frame = handled.as_ref().unwrap_or(frame);
         timings.fireflies = t.elapsed();
         let t = Instant::now();
@@ -543,10 +544,21 @@ pub fn prepare(frame: &Frame, mode: AlbedoPrefilter, beauty: bool) -> Option<Fra
     }
 }
 
+/// Whether `variant`'s inputs keep fields of bright samples (rule 4 of [`fireflies`]): the
+/// `full` and `nocov` networks, which spread them and lost RelMSE and DSSIM when they were
+/// clamped. The `beauty` and `lin2020` networks lost RelMSE with the rule on held-out
+/// frames (docs/fireflies.md, "Sparse signals are not outliers"), so theirs, and any other
+/// variant's, are clamped as before.
+pub fn firefly_fields(variant: Variant) -> bool {
+    variant == Variant::Full || variant == Variant::Nocov
+}
+
 /// Runs the firefly handling on every color buffer the networks read (diffuse, divided by
 /// albedo as the network sees it, and specular). Returns the changed frame (`None` when
 /// nothing was changed: the frame is only copied when it has outliers) and the counts.
-pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, FireflyReport) {
+/// `fields`: whether fields of bright samples are left to the network (rule 4 of
+/// [`fireflies`]; [`firefly_fields`]).
+pub fn handle_fireflies(frame: &Frame, settings: Fireflies, fields: bool) -> (Option<Frame>, FireflyReport) {
     use fireflies::Layer;
     let mut report = FireflyReport::default();
     if !settings.enabled() {
@@ -558,7 +570,8 @@ pub fn handle_fireflies(frame: &Frame, settings: Fireflies) -> (Option<Frame>, F
         let c = frame.f32_planes(color);
         // Variances filled in as zeros for a missing buffer say nothing.
         let known = frame.has(variance) && !frame.missing_variances.iter().any(|m| m == variance.name());
-        let layer = Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| frame.rgb(variance)), albedo };
+        let layer =
+            Layer { color: [&c[0], &c[1], &c[2]], variance: known.then(|| frame.rgb(variance)), albedo, fields };
         fireflies::detect(layer, w, h, settings)
     };
     let diffuse = layer(Buffer::Diffuse, Buffer::DiffuseVariance, Some(albedo));
