@@ -128,11 +128,12 @@ eval: setup-train build
 
 ## Speed (docs/results.md): GEMM ceilings (FP32 and int8), ONNX Runtime alone, the engine's
 ## stages, the daemon with 1, 2 and 8 clients, peak memory at 720p/1080p/4K, int8 against
-## FP32, OIDN on the same frame.
+## FP32, OIDN on the same frame, and `mcdenoise run` against OIDN high timed in turns.
 bench: setup-train build
 	$(call int8_quantize,$(INT8_FRAMES),$(INT8_CROP))
 	cargo bench --locked --bench speed -- --models models --int8-models $(INT8_MODELS) --out docs/results/speed.json
 	$(PY) benches/oidn_speed.py target/bench/frame-1280x720.exr --out docs/results/oidn.json
+	$(PY) benches/paired_speed.py target/bench/frame-1280x720.exr --models models --out docs/results/paired.json
 	$(PY) benches/report.py
 
 ## An int8 copy of the default model for the benchmark (mcdenoise_train.quantize, every

@@ -1,5 +1,5 @@
 """Writes docs/results.md from the measurements under docs/results/: `make bench` (speed.json,
-oidn.json) and `make eval` (val/ and test/: results.md, quality.png, crops/). Each target
+oidn.json, paired.json) and `make eval` (val/ and test/: results.md, quality.png, crops/). Each target
 reruns this script, so the page always shows the latest of both.
 
     python benches/report.py [--results docs/results] [--out docs/results.md]
@@ -293,6 +293,23 @@ def quality_section(results: Path) -> list[str]:
     return out
 
 
+def paired_section(paired: dict) -> list[str]:
+    """benches/paired_speed.py: `mcdenoise run` and OIDN timed in turns, round by round."""
+    q, n = paired["oidn_quality"], len(paired["rounds"])
+    out = ["", f"### `mcdenoise run` against OIDN {q}, in turns",
+           "", f"Each of {n} rounds timed one `mcdenoise run` of the {paired['width']}×{paired['height']} frame as a "
+           f"whole process (decode, model loading, the `{paired['variant']}` network, encode; {paired['threads']} "
+           f"threads) and one OIDN {paired.get('pyoidn', '')} call at quality `{q}` (the call alone, its device made "
+           "before), one after the other, so that the machine's drift from minute to minute weighs on both "
+           "(benches/paired_speed.py).", "",
+           f"| round | `mcdenoise run` (s) | OIDN {q} (s) | ours / OIDN |", "|---|---|---|---|"]
+    for k, r in enumerate(paired["rounds"], 1):
+        out.append(f"| {k} | {r['mcdenoise_run_s']:.2f} | {r['oidn_s']:.2f} | {r['ratio']:.2f} |")
+    out.append(f"| **median** | {paired['mcdenoise_run_median_s']:.2f} | {paired['oidn_median_s']:.2f} | "
+               f"**{paired['ratio_median']:.2f}** ({paired['ratio_min']:.2f}–{paired['ratio_max']:.2f}) |")
+    return out
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--results", default="docs/results")
@@ -306,6 +323,9 @@ def main() -> int:
     if speed.exists():
         oidn = results / "oidn.json"
         lines += speed_section(json.loads(speed.read_text()), json.loads(oidn.read_text()) if oidn.exists() else None)
+        paired = results / "paired.json"
+        if paired.exists():
+            lines += paired_section(json.loads(paired.read_text()))
         lines += speed_work(results)
         lines.append("")
     scale_out = results / "scale-out.json"

@@ -455,6 +455,8 @@ fn loadavg() -> f64 {
 }
 
 fn main() -> Result<()> {
+    // The process as `mcdenoise` runs it: glibc's thresholds and huge pages (src/memory.rs).
+    mcdenoise::memory::configure();
     let a = parse_args()?;
     let load_start = loadavg();
     let dir = a.work.clone();

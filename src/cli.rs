@@ -328,7 +328,8 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     if let Some(r) = &reference {
         check_same_size(&frame, r)?;
     }
-    let set = match args.variant.resolve() {
+    let variant = args.variant.resolve();
+    let set = match variant {
         Some(Variant::Full) if !frame.has(Buffer::Covariance) => {
             bail!("{}: --variant full needs a `covariance` channel", args.input.display())
         }
@@ -343,8 +344,8 @@ pub fn preprocess(args: PreprocessArgs) -> Result<()> {
     if set == FeatureSet::Nocov {
         frame.remove(Buffer::Covariance);
     }
-    let beauty = args.variant.resolve() == Some(Variant::Beauty);
-    let fields = args.variant.resolve().is_none_or(engine::firefly_fields);
+    let beauty = variant == Some(Variant::Beauty);
+    let fields = variant.is_none_or(engine::firefly_fields);
     let (handled, report) = engine::handle_fireflies(&frame, args.fireflies.settings(), fields);
     if let Some(handled) = handled {
         frame = handled;

@@ -22,7 +22,8 @@
 //!   protobuf conversions), [`auth`] (bearer tokens, client identity), [`tls`] (rustls
 //!   for both listeners), [`conn`] (every connection in its own task, with its timeouts).
 //!
-//! [`atomic`] writes every file the crate writes (temporary name, fsync, rename).
+//! [`atomic`] writes every file the crate writes (temporary name, fsync, rename); [`memory`]
+//! sets how the process asks for memory (mapped blocks, huge pages).
 //!
 //! `docs/frame-layout.md` and `docs/model-contract.md` describe the formats.
 
@@ -38,6 +39,7 @@ pub mod frame;
 pub mod grpc;
 pub mod http;
 pub mod jobs;
+pub mod memory;
 pub mod otlp;
 pub mod pipeline;
 pub mod preview;

@@ -3,7 +3,7 @@
 use clap::{Parser, Subcommand};
 use tracing_subscriber::EnvFilter;
 
-use mcdenoise::{cli, client, config, server};
+use mcdenoise::{cli, client, config, memory, server};
 
 /// Denoiser for Monte Carlo path-traced frames (kernel-predicting CNNs on ONNX Runtime).
 #[derive(Parser, Debug)]
@@ -34,31 +34,8 @@ fn init_cli_logging() {
         .init();
 }
 
-/// Allocations of 4 MB and more (a 4K frame's planes, a region's tensors, ONNX Runtime's
-/// arena extensions) are mapped and unmapped one by one, so that what a large frame frees
-/// goes back to the system; smaller blocks (a 720p frame's planes are 1.8–3.7 MB) come from
-/// the heaps, which keep up to 128 MB free at their top, so that the next stage reuses the
-/// pages the last one freed instead of having the kernel fault in and zero new ones.
-/// glibc's default mmap threshold starts at 128 KB and rises to the largest block freed (up
-/// to 32 MB), after which a 4K frame's planes come from heaps that several threads fragment:
-/// `mcdenoise run` on one 3840×2160 frame peaked anywhere between 1.37 and 1.53 GB from run
-/// to run. With a fixed 1 MB threshold it peaked at 1.43–1.46 GB, and with these two values
-/// at 1.47 GB in 30 s instead of 31–34 s, while a 720p run spends a third less time in the
-/// kernel (docs/results/speed-work.md).
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn tune_allocator() {
-    // SAFETY: mallopt only sets parameters of the allocator; called before any thread starts.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 4 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 128 << 20);
-    }
-}
-
-#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
-fn tune_allocator() {}
-
 fn main() -> std::process::ExitCode {
-    tune_allocator();
+    memory::configure();
     let result = match Cli::parse().command {
         Command::Run(args) => {
             init_cli_logging();

@@ -368,3 +368,49 @@ async fn traces_reach_an_otlp_collector_with_the_job_id() {
     // A job's routes carry its id too.
     assert!(spans.iter().any(|s| s.name == "GET /v1/jobs/{id}" && attr(s, "job_id").as_deref() == Some(id.as_str())));
 }
+
+/// `GLIBC_TUNABLES` of a daemon started with `adjust`, read from /proc once it listens
+/// (after it has started itself again, if it does: src/memory.rs).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn daemon_tunables(adjust: impl FnOnce(&mut Command)) -> Option<String> {
+    let dir = tempfile::tempdir().unwrap();
+    let mut p = spawn_daemon_with(dir.path(), &[], adjust);
+    let environ = std::fs::read(format!("/proc/{}/environ", p.child.id())).unwrap();
+    assert!(p.terminate().success());
+    // glibc parses the variable in place, each `:` becoming a NUL in the process's original
+    // environment, which /proc shows: the tunables are the segments after the name.
+    let mut parts = environ.split(|b| *b == 0).skip_while(|v| !v.starts_with(b"GLIBC_TUNABLES="));
+    let first = parts.next()?.strip_prefix(b"GLIBC_TUNABLES=").unwrap().to_vec();
+    let rest = parts.take_while(|v| v.starts_with(b"glibc.")).map(|v| [b":", v].concat());
+    Some(String::from_utf8_lossy(&[first].into_iter().chain(rest).collect::<Vec<_>>().concat()).into_owned())
+}
+
+#[test]
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn the_daemon_asks_for_huge_pages_where_the_kernel_gives_them_on_request() {
+    let mode = std::fs::read_to_string("/sys/kernel/mm/transparent_hugepage/enabled").unwrap_or_default();
+    let on_request = mode.contains("[madvise]");
+    let plain = daemon_tunables(|c| {
+        c.env_remove("GLIBC_TUNABLES").env_remove("MCDENOISE_HUGE_PAGES");
+    });
+    let others = daemon_tunables(|c| {
+        c.env("GLIBC_TUNABLES", "glibc.malloc.arena_max=4").env_remove("MCDENOISE_HUGE_PAGES");
+    });
+    if on_request {
+        assert_eq!(plain.as_deref(), Some("glibc.malloc.hugetlb=1"));
+        assert_eq!(others.as_deref(), Some("glibc.malloc.arena_max=4:glibc.malloc.hugetlb=1"));
+    } else {
+        eprintln!("transparent huge pages `{}`: the daemon starts as it is", mode.trim());
+        assert_eq!(plain, None);
+        assert_eq!(others.as_deref(), Some("glibc.malloc.arena_max=4"));
+    }
+    // The operator's own choice, and the switch, are left as they are.
+    let chosen = daemon_tunables(|c| {
+        c.env("GLIBC_TUNABLES", "glibc.malloc.hugetlb=0").env_remove("MCDENOISE_HUGE_PAGES");
+    });
+    assert_eq!(chosen.as_deref(), Some("glibc.malloc.hugetlb=0"));
+    let off = daemon_tunables(|c| {
+        c.env_remove("GLIBC_TUNABLES").env("MCDENOISE_HUGE_PAGES", "off");
+    });
+    assert_eq!(off, None);
+}

@@ -15,6 +15,12 @@ from conftest import ROOT
 QUICK = ROOT / "target" / "bench" / "quick.json"
 
 
+def report(results, out) -> subprocess.CompletedProcess:
+    """benches/report.py on the measurements in `results`, writing the page `out`."""
+    return subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
+                           "--out", str(out)], capture_output=True, text=True, timeout=60)
+
+
 def test_the_results_page_shows_int8_against_fp32_from_the_same_run(tmp_path):
     if not QUICK.exists():
         pytest.fail(f"{QUICK} is missing: `make test` writes it (cargo bench --bench speed -- --quick "
@@ -25,8 +31,7 @@ def test_the_results_page_shows_int8_against_fp32_from_the_same_run(tmp_path):
     results.mkdir()
     shutil.copy(QUICK, results / "speed.json")
     out = tmp_path / "results.md"
-    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
-                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    r = report(results, out)
     assert r.returncode == 0, r.stderr
     page = out.read_text()
     assert "### Int8 against FP32" in page
@@ -55,8 +60,7 @@ def test_the_results_page_compares_with_oidn_in_like_terms(tmp_path):
                         "fast": {"seconds": 0.25, "file_seconds": 0.5, "runs": 3}}}
     (results / "oidn.json").write_text(json.dumps(oidn))
     out = tmp_path / "results.md"
-    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
-                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    r = report(results, out)
     assert r.returncode == 0, r.stderr
     page = out.read_text()
     # The denoising alone against the filter call; file to file against read, filter, write.
@@ -71,9 +75,29 @@ def test_the_results_page_compares_with_oidn_in_like_terms(tmp_path):
     for q in oidn["quality"].values():
         del q["file_seconds"]
     (results / "oidn.json").write_text(json.dumps(oidn))
-    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
-                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    r = report(results, out)
     assert r.returncode == 0 and "quality high | 0.50 |" in out.read_text() and "EXR file to EXR" not in out.read_text()
+
+
+def test_the_results_page_shows_the_rounds_in_turns_against_oidn(tmp_path):
+    # benches/paired_speed.py's rounds: each with its ratio, and the median with its range.
+    if not QUICK.exists():
+        pytest.fail(f"{QUICK} is missing: `make test` writes it before these tests")
+    results = tmp_path / "results"
+    results.mkdir()
+    shutil.copy(QUICK, results / "speed.json")
+    rounds = [{"mcdenoise_run_s": a, "oidn_s": b, "ratio": a / b} for a, b in ((2.2, 1.6), (2.5, 1.5), (2.0, 1.6))]
+    paired = {"width": 1280, "height": 720, "threads": 2, "variant": "full", "oidn_quality": "high",
+              "pyoidn": "2.5.1.0", "rounds": rounds, "mcdenoise_run_median_s": 2.2, "oidn_median_s": 1.6,
+              "ratio_median": 2.2 / 1.6, "ratio_min": 2.0 / 1.6, "ratio_max": 2.5 / 1.5}
+    (results / "paired.json").write_text(json.dumps(paired))
+    out = tmp_path / "results.md"
+    r = report(results, out)
+    assert r.returncode == 0, r.stderr
+    page = out.read_text()
+    assert "### `mcdenoise run` against OIDN high, in turns" in page
+    assert "| 2 | 2.50 | 1.50 | 1.67 |" in page
+    assert "| **median** | 2.20 | 1.60 | **1.38** (1.25–1.67) |" in page
 
 
 def test_the_results_page_shows_the_gpu_run_against_oidn(tmp_path):
@@ -84,8 +108,7 @@ def test_the_results_page_shows_the_gpu_run_against_oidn(tmp_path):
     for name in ("gpu.json", "gpu-split.json"):
         shutil.copy(ROOT / "docs" / "results" / name, results / name)
     out = tmp_path / "results.md"
-    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
-                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    r = report(results, out)
     assert r.returncode == 0, r.stderr
     page = out.read_text()
     gpu = json.loads((results / "gpu.json").read_text())
@@ -101,8 +124,7 @@ def test_the_results_page_shows_the_gpu_run_against_oidn(tmp_path):
     assert "#### Where the frame time goes" in page
     # A run without OIDN (`--oidn-benchmark` not given): the same rows, their OIDN cells empty.
     (results / "gpu.json").write_text(json.dumps({**gpu, "oidn": None}))
-    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
-                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    r = report(results, out)
     assert r.returncode == 0, r.stderr
     rows = [ln for ln in out.read_text().splitlines() if ln.endswith("|  |  |")]
     assert len(rows) == len(gpu["daemon"]) + len(gpu["variants"]), rows
@@ -119,8 +141,7 @@ def test_the_results_page_shows_each_evaluated_set_with_what_it_holds(tmp_path):
         (results / name).mkdir(parents=True)
         (results / name / "results.md").write_text(f"{held} (split `test`).\n\n## Mean over all frames\n\n| m |\n")
     out = tmp_path / "results.md"
-    r = subprocess.run([sys.executable, str(ROOT / "benches" / "report.py"), "--results", str(results),
-                        "--out", str(out)], capture_output=True, text=True, timeout=60)
+    r = report(results, out)
     assert r.returncode == 0, r.stderr
     page = out.read_text()
     held = page.index("### Held-out scenes at 384² (never seen in training or selection)\n\n18 frames of 6 scenes")

@@ -1,5 +1,7 @@
-"""benches/quality_time.py on tiny inputs: the error of each method over the frames every
-method ran on, against the seconds of a whole `mcdenoise run` and of an OIDN call."""
+"""The benchmarks that time `mcdenoise run` against OIDN, on tiny inputs: benches/quality_time.py
+(the error of each method over the frames every method ran on, against the seconds of a
+whole `mcdenoise run` and of an OIDN call) and benches/paired_speed.py (the two timed in
+turns, every round's ratio kept)."""
 
 import json
 import os
@@ -48,3 +50,27 @@ def test_quality_against_time_on_tiny_inputs(tmp_path):
     with pytest.raises(SystemExit, match="no frame has rows of every method"):
         quality_time.main(["--frame", str(frame), "--results", str(results), "--variants", "lin2020",
                            "--qualities", "fast", "--out", str(out)])
+
+
+@needs_engine
+def test_rounds_in_turns_on_tiny_inputs(tmp_path):
+    sys.path.insert(0, str(ROOT / "benches"))
+    import paired_speed
+
+    frame = tmp_path / "frame.exr"
+    write_exr(frame, synthetic_frame(32, 48, seed=2))
+    out = tmp_path / "paired.json"
+    assert paired_speed.main([str(frame), "--models", str(ROOT / "tests/fixtures/models/tiny"), "--rounds", "3",
+                              "--threads", "1", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert (report["width"], report["height"], report["oidn_quality"]) == (48, 32, "high")
+    assert len(report["rounds"]) == 3
+    ratios = [r["mcdenoise_run_s"] / r["oidn_s"] for r in report["rounds"]]
+    assert [r["ratio"] for r in report["rounds"]] == pytest.approx(ratios)
+    assert report["ratio_min"] <= report["ratio_median"] <= report["ratio_max"]
+    assert report["ratio_median"] == pytest.approx(sorted(ratios)[1])
+
+    with pytest.raises(SystemExit, match="mcdenoise run failed"):
+        paired_speed.main([str(frame), "--models", str(tmp_path / "nosuch"), "--rounds", "1", "--out", str(out)])
+    with pytest.raises(SystemExit, match="no such frame"):
+        paired_speed.main([str(tmp_path / "none.exr"), "--out", str(out)])
