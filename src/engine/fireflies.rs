@@ -223,18 +223,18 @@ pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<
 /// `CLUSTER_LIMIT` peers: other candidates within `CLUSTER_RADIUS` at least `PEER` times as
 /// bright (in `g + δ`). Rule 4 of the module documentation.
 fn unclustered(found: Vec<Fix>, g: &[f32], delta: f32, w: usize, h: usize) -> Vec<Fix> {
-    let index: Vec<usize> = found.iter().map(|f| f.index).collect();
-    let keep: Vec<bool> = index
+    let keep: Vec<bool> = found
         .par_iter()
-        .map(|&i| {
+        .map(|f| {
+            let i = f.index;
             let (x, y) = (i % w, i / w);
             let (x0, x1) = (x.saturating_sub(CLUSTER_RADIUS), (x + CLUSTER_RADIUS).min(w - 1));
             let floor = PEER * (g[i] + delta);
             let mut peers = 0usize;
             for yy in y.saturating_sub(CLUSTER_RADIUS)..=(y + CLUSTER_RADIUS).min(h - 1) {
-                let lo = index.partition_point(|&j| j < yy * w + x0);
-                let hi = index.partition_point(|&j| j <= yy * w + x1);
-                peers += index[lo..hi].iter().filter(|&&j| j != i && g[j] + delta >= floor).count();
+                let lo = found.partition_point(|q| q.index < yy * w + x0);
+                let hi = found.partition_point(|q| q.index <= yy * w + x1);
+                peers += found[lo..hi].iter().filter(|q| q.index != i && g[q.index] + delta >= floor).count();
             }
             peers < CLUSTER_LIMIT
         })
