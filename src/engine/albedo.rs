@@ -450,6 +450,35 @@ mod tests {
         (*seed >> 40) as f32 / (1u64 << 24) as f32
     }
 
+    /// Time of both passes over a 1280×720 albedo with variance everywhere, on the rayon
+    /// pool's threads (run with `RAYON_NUM_THREADS=2 cargo test --release --lib -- --ignored
+    /// --nocapture prefilter_speed`).
+    #[test]
+    #[ignore = "a timing, not a test"]
+    fn prefilter_speed() {
+        let (w, h) = (1280, 720);
+        let mut seed = 5;
+        let albedo: [Plane; 3] = std::array::from_fn(|_| (0..w * h).map(|_| 0.2 + 0.6 * lcg(&mut seed)).collect());
+        let variance: Vec<f32> = (0..w * h).map(|_| 0.001 + 0.01 * lcg(&mut seed)).collect();
+        let mut best = [f64::MAX; 2];
+        for _ in 0..5 {
+            let t = std::time::Instant::now();
+            let (first, v) =
+                nl_means(albedo.each_ref().map(|p| PlaneRef::F32(p)), variance.clone(), w, h, PASSES[0], None);
+            best[0] = best[0].min(t.elapsed().as_secs_f64());
+            let t = std::time::Instant::now();
+            std::hint::black_box(nl_means(first.each_ref().map(|p| PlaneRef::F32(p)), v, w, h, PASSES[1], None));
+            best[1] = best[1].min(t.elapsed().as_secs_f64());
+        }
+        let pairs = (w * h * (2 * RADIUS + 1) * (2 * RADIUS + 1)) as f64;
+        println!(
+            "1280x720: first pass {:.1} ms, second {:.1} ms, {:.2} ns per pixel pair",
+            best[0] * 1e3,
+            best[1] * 1e3,
+            best[0] * 1e9 / pairs
+        );
+    }
+
     #[test]
     fn bands_give_the_method_written_out() {
         // Three bands and a partial one, three strips (the last partial) and one exact,
