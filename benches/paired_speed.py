@@ -24,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from importlib import metadata
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,7 +86,7 @@ def main(argv=None) -> int:
     ratios = [r["ratio"] for r in rounds]
     result = {
         "width": w, "height": h, "threads": a.threads, "variant": report.get("variant", a.variant),
-        "oidn_quality": a.quality, "pyoidn": _version("pyoidn"),
+        "oidn_quality": a.quality, "pyoidn": metadata.version("pyoidn"),
         "huge_pages": os.environ.get("MCDENOISE_HUGE_PAGES", "default"), "rounds": rounds,
         "mcdenoise_run_median_s": statistics.median(r["mcdenoise_run_s"] for r in rounds),
         "oidn_median_s": statistics.median(r["oidn_s"] for r in rounds),
@@ -96,12 +97,6 @@ def main(argv=None) -> int:
     print(f"mcdenoise run / OIDN {a.quality}: median {result['ratio_median']:.2f}x "
           f"({result['ratio_min']:.2f}-{result['ratio_max']:.2f}x over {a.rounds} rounds)", file=sys.stderr)
     return 0
-
-
-def _version(package: str) -> str:
-    from importlib import metadata
-
-    return metadata.version(package)
 
 
 if __name__ == "__main__":

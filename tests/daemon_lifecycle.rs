@@ -376,13 +376,14 @@ fn daemon_tunables(adjust: impl FnOnce(&mut Command)) -> Option<String> {
     let dir = tempfile::tempdir().unwrap();
     let mut p = spawn_daemon_with(dir.path(), &[], adjust);
     let environ = std::fs::read(format!("/proc/{}/environ", p.child.id())).unwrap();
-    assert!(p.terminate().success());
+    let status = p.terminate();
+    assert!(status.success(), "{status:?}: {:?}", p.logs.lock().unwrap());
     // glibc parses the variable in place, each `:` becoming a NUL in the process's original
     // environment, which /proc shows: the tunables are the segments after the name.
     let mut parts = environ.split(|b| *b == 0).skip_while(|v| !v.starts_with(b"GLIBC_TUNABLES="));
-    let first = parts.next()?.strip_prefix(b"GLIBC_TUNABLES=").unwrap().to_vec();
-    let rest = parts.take_while(|v| v.starts_with(b"glibc.")).map(|v| [b":", v].concat());
-    Some(String::from_utf8_lossy(&[first].into_iter().chain(rest).collect::<Vec<_>>().concat()).into_owned())
+    let first = parts.next()?.strip_prefix(b"GLIBC_TUNABLES=").unwrap();
+    let rest = parts.take_while(|v| v.starts_with(b"glibc."));
+    Some(std::iter::once(first).chain(rest).map(String::from_utf8_lossy).collect::<Vec<_>>().join(":"))
 }
 
 #[test]

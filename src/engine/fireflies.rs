@@ -213,7 +213,7 @@ pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<
         })
         .collect();
     if layer.fields {
-        unclustered(found, &g, delta, w, h)
+        unclustered(&found, &g, delta, w, h)
     } else {
         found
     }
@@ -222,10 +222,10 @@ pub fn detect(layer: Layer<'_>, w: usize, h: usize, settings: Fireflies) -> Vec<
 /// `found` (row-major, as [`detect`] collects it) without the candidates that have at least
 /// `CLUSTER_LIMIT` peers: other candidates within `CLUSTER_RADIUS` at least `PEER` times as
 /// bright (in `g + δ`). Rule 4 of the module documentation.
-fn unclustered(found: Vec<Fix>, g: &[f32], delta: f32, w: usize, h: usize) -> Vec<Fix> {
-    let keep: Vec<bool> = found
+fn unclustered(found: &[Fix], g: &[f32], delta: f32, w: usize, h: usize) -> Vec<Fix> {
+    found
         .par_iter()
-        .map(|f| {
+        .filter(|f| {
             let i = f.index;
             let (x, y) = (i % w, i / w);
             let (x0, x1) = (x.saturating_sub(CLUSTER_RADIUS), (x + CLUSTER_RADIUS).min(w - 1));
@@ -238,8 +238,8 @@ fn unclustered(found: Vec<Fix>, g: &[f32], delta: f32, w: usize, h: usize) -> Ve
             }
             peers < CLUSTER_LIMIT
         })
-        .collect();
-    found.into_iter().zip(keep).filter_map(|(f, k)| k.then_some(f)).collect()
+        .cloned()
+        .collect()
 }
 
 /// The luminance of each pixel in the network's domain (the color divided by `albedo + ε`
