@@ -452,25 +452,34 @@ impl Denoiser for Slowed {
     }
 }
 
-/// Resolves on SIGTERM or SIGINT.
-pub async fn shutdown_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
+/// Resolves on SIGTERM or SIGINT. The listeners are registered when this is called, not
+/// when the future is first polled: `serve` calls it before the daemon listens, so that a
+/// signal arriving as soon as it does starts the graceful shutdown instead of ending the
+/// process (the signals' default action). Call it inside the runtime.
+pub fn shutdown_signal() -> impl std::future::Future<Output = ()> {
     #[cfg(unix)]
-    let terminate = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
+    {
+        use tokio::signal::unix::{signal, Signal, SignalKind};
+        async fn next(s: Option<Signal>) {
+            match s {
+                Some(mut s) => {
+                    s.recv().await;
+                }
+                None => std::future::pending::<()>().await,
             }
-            Err(_) => std::future::pending::<()>().await,
         }
-    };
+        let (interrupt, terminate) = (signal(SignalKind::interrupt()).ok(), signal(SignalKind::terminate()).ok());
+        async move {
+            tokio::select! {
+                _ = next(interrupt) => tracing::info!("SIGINT received"),
+                _ = next(terminate) => tracing::info!("SIGTERM received"),
+            }
+        }
+    }
     #[cfg(not(unix))]
-    let terminate = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => tracing::info!("SIGINT received"),
-        _ = terminate => tracing::info!("SIGTERM received"),
+    async {
+        let _ = tokio::signal::ctrl_c().await;
+        tracing::info!("SIGINT received");
     }
 }
 
@@ -490,10 +499,11 @@ pub fn serve(args: ServeArgs) -> anyhow::Result<()> {
     crate::telemetry::init_logging(args.log_format, &args.log, tracer);
     tracing::info!(config = %args.summary(), version = env!("CARGO_PKG_VERSION"), "starting mcdenoise serve");
     let served = runtime.block_on(async {
+        let signal = shutdown_signal();
         let server = Server::start(args).await?;
         let token = server.shutdown_token();
         tokio::spawn(async move {
-            shutdown_signal().await;
+            signal.await;
             token.cancel();
         });
         server.wait().await

@@ -369,6 +369,19 @@ async fn traces_reach_an_otlp_collector_with_the_job_id() {
     assert!(spans.iter().any(|s| s.name == "GET /v1/jobs/{id}" && attr(s, "job_id").as_deref() == Some(id.as_str())));
 }
 
+#[test]
+fn a_sigterm_as_soon_as_the_daemon_listens_is_a_graceful_exit() {
+    // The signal listeners exist before the "listening" line (server::shutdown_signal):
+    // a SIGTERM at once drains and exits with status 0 instead of ending the process.
+    for _ in 0..5 {
+        let dir = tempfile::tempdir().unwrap();
+        let mut p = spawn_daemon(dir.path(), &[]);
+        let status = p.terminate();
+        assert!(status.success(), "{status:?}");
+        assert!(p.logs.lock().unwrap().iter().any(|l| l.contains("SIGTERM received")));
+    }
+}
+
 /// `GLIBC_TUNABLES` of a daemon started with `adjust`, read from /proc once it listens
 /// (after it has started itself again, if it does: src/memory.rs).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
