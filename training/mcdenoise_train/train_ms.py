@@ -395,7 +395,16 @@ def selection_score(v: dict, select: str) -> float:
     return v["score"]
 
 
-def baseline(net: MSNet, val: FrameSet, a, out: Path) -> float:
+def save_best(path: Path, net, step: int, v: dict, a) -> None:
+    """Keeps `net` as the run's best.pt: an msnet checkpoint, or the paper's pair."""
+    if isinstance(net, Lin2020Pair):
+        save_checkpoint(path, {"diffuse": net.diffuse, "specular": net.specular}, step=step, val=v,
+                        train_config=vars(a))
+    else:
+        save_msnet(path, net, step=step, val=v)
+
+
+def baseline(net, val: FrameSet, a, out: Path) -> float:
     """Scores the network a fine-tune starts from (`--init`) as step 0 of val.jsonl and keeps
     it as best.pt; returns its score, the one later checkpoints must beat."""
     v = scored(net, val, a)
@@ -403,7 +412,7 @@ def baseline(net: MSNet, val: FrameSet, a, out: Path) -> float:
     append_jsonl(out / "val.jsonl", v)
     print(f"validation of {a.init} (the start): RelMSE {v['relmse']:.5f} DSSIM {v['dssim']:.4f}",
           file=sys.stderr, flush=True)
-    save_msnet(out / "best.pt", net, step=0, val=v)
+    save_best(out / "best.pt", net, 0, v, a)
     return selection_score(v, a.select)
 
 
@@ -495,8 +504,8 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--resume", action="store_true")
     p.add_argument("--init", default=None,
-                   help="start from this msnet checkpoint's weights (its shape; a fresh optimizer and schedule): "
-                        "fine-tuning, e.g. with other loss weights")
+                   help="start from this checkpoint's weights (its shape; a fresh optimizer and schedule): "
+                        "fine-tuning, e.g. with other loss weights; with --arch lin2020 a lin2020 run's best.pt")
     p.add_argument("--reshape", action="store_true",
                    help="with --init: train the shape the shape options give (fewer extractor blocks, narrower "
                         "decoder levels), started from the checkpoint's weights where they fit (msnet.transplant)")
@@ -552,6 +561,8 @@ def main(argv=None) -> int:
     if a.blend_shift and (not a.init or a.reshape or a.arch != "msnet"):
         raise SystemExit("--blend-shift raises the blends of the network a fine-tune starts from: it needs --init "
                          "(without --reshape)")
+    if a.reshape and a.arch != "msnet":
+        raise SystemExit("--reshape narrows the production network (--arch msnet); lin2020 keeps its checkpoint's shape")
     if a.reshape and not a.init:
         raise SystemExit("--reshape needs --init (the checkpoint whose weights start the new shape)")
     if a.blend_bound < 0 or a.blend_penalty < 0:
@@ -602,7 +613,13 @@ def main(argv=None) -> int:
     if a.arch == "lin2020":
         if a.beauty:
             raise SystemExit("--beauty trains the production network (--arch msnet)")
-        net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
+        if a.init:  # a pair trained before (its shape), on for another lease
+            nets = load_checkpoint(a.init)[0]
+            net = Lin2020Pair(**nets["diffuse"].config)
+            for c in ("diffuse", "specular"):
+                getattr(net, c).load_state_dict(nets[c].state_dict())
+        else:
+            net = Lin2020Pair(width=a.lin_width, blocks=a.lin_blocks, predictor_width=a.lin_predictor_width)
         a.cov_dropout = 0.0  # the paper's network always has covariance
     elif a.init and a.reshape:
         source = load_msnet(a.init)[0]
@@ -705,7 +722,7 @@ def main(argv=None) -> int:
     judged = ema.module if ema is not None else net
     (out / "config.json").write_text(json.dumps(vars(a), indent=2))
     print(f"training: {net.description()}; {net.flops_per_pixel() / 1e6:.3f} MFLOP/px", file=sys.stderr, flush=True)
-    if a.init and not a.reshape and not isinstance(net, Lin2020Pair) and step == 0 and len(val):
+    if a.init and not a.reshape and step == 0 and len(val):
         # A fine-tune starts from a trained network: that network, scored on the same
         # validation frames, is the one to beat, so best.pt is never worse than the start
         # (with --blend-shift, the network as it was before the shift).
@@ -786,11 +803,7 @@ def main(argv=None) -> int:
             score = selection_score(v, a.select)
             if score < best:
                 best = score
-                if isinstance(judged, Lin2020Pair):
-                    save_checkpoint(out / "best.pt", {"diffuse": judged.diffuse, "specular": judged.specular},
-                                    step=step, val=v, train_config=vars(a))
-                else:
-                    save_msnet(out / "best.pt", judged, step=step, val=v)
+                save_best(out / "best.pt", judged, step, v, a)
             save_resume()
     log.close()
     if a.export and a.arch == "lin2020":

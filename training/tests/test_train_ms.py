@@ -319,6 +319,25 @@ def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
         assert meta["mcdenoise.contract"] == "1" and meta["mcdenoise.variant"] == "lin2020"
         assert meta["mcdenoise.component"] == c and meta["mcdenoise.kernel_size"] == "21"
 
+    # A run goes on from an earlier one's best.pt (--init): its shape, its weights at the start.
+    from mcdenoise_train.checkpoint import load_checkpoint
+
+    start = load_checkpoint(tmp_path / "run" / "best.pt")[0]
+    assert train_ms.main(["--data", str(root), "--out", str(tmp_path / "more"), "--arch", "lin2020",
+                          "--init", str(tmp_path / "run" / "best.pt"), "--steps", "1", "--lr", "1e-12",
+                          "--patch", "32", "--batch", "2", "--threads", "2", "--device", "cpu"]) == 0
+    # The start is scored as step 0 and kept as best.pt until a validation beats it.
+    rows = [json.loads(line) for line in (tmp_path / "more" / "val.jsonl").read_text().splitlines()]
+    assert rows[0]["step"] == 0 and rows[0]["init"] == str(tmp_path / "run" / "best.pt")
+    after = load_checkpoint(tmp_path / "more" / "best.pt")[0]
+    for c in ("diffuse", "specular"):
+        assert after[c].config == start[c].config
+        for k, v in start[c].state_dict().items():
+            assert torch.allclose(after[c].state_dict()[k], v, atol=1e-6), (c, k)
+    with pytest.raises(SystemExit, match="--reshape narrows the production network"):
+        train_ms.main(["--data", str(root), "--out", str(tmp_path / "x"), "--arch", "lin2020", "--reshape",
+                       "--init", str(tmp_path / "run" / "best.pt"), "--steps", "1"])
+
 
 def test_the_learning_rate_defaults_by_architecture():
     # The paper's network saturates its kernels at the production network's rate
