@@ -1,7 +1,8 @@
 """scripts/gpu-pipeline end to end on tiny inputs, on the CPU (DEVICE=cpu): render (training,
-validation and test workers), carry another data set of another size beside it, train two
-runs side by side in the background against a deadline, pack the results in pieces and
-unpack them, pack the test set and unpack it here as one data set."""
+validation and test workers, the training references with fewer samples), carry another
+data set of another size beside it, train two runs side by side in the background against a
+deadline, pack the results in pieces and unpack them, pack the test set and unpack it here
+as one data set."""
 
 import json
 import os
@@ -27,7 +28,7 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
     home = tmp_path / "home"
     env = {**os.environ, "GPU_HOME": str(home), "DEVICE": "cpu", "PY": sys.executable, "WORKERS": "2",
            "VAL_WORKERS": "1", "TEST_WORKERS": "1", "SIZE": "32,40", "SPP": "2,8", "TEST_SPP": "2,8",
-           "REF_SPP": "16", "PATCH": "16", "BATCH": "2", "VAL_FRAMES": "2",
+           "REF_SPP": "16", "TRAIN_REF_SPP": "12", "PATCH": "16", "BATCH": "2", "VAL_FRAMES": "2",
            "RUNS": f"a=--l1 1 {TINY};b=--l1 1 --ssim 0.2 {TINY}"}
     _run(env, "render", "40")
     splits, sides = {}, {}
@@ -39,6 +40,10 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
     assert splits.get("w0") == {"val"} and splits.get("w1") == {"train"} and splits.get("t0") == {"test"}
     # SIZE "32,40": worker 1 renders at the second size; validation and test at the first.
     assert sides == {"w0": {(32, 32)}, "w1": {(40, 40)}, "t0": {(32, 32)}}, sides
+    # TRAIN_REF_SPP: the training worker's references only; validation and test keep REF_SPP.
+    refs = {d.name: json.loads((d / "summary.json").read_text())["ref_spp"]
+            for d in [home / "data" / "w0", home / "data" / "w1", home / "test-none" / "t0"]}
+    assert refs == {"w0": 16, "w1": 12, "t0": 16}, refs
 
     # A second data set of another size (frames of 48², as if from the CPU), carried in two
     # pieces with every other noisy level, trains beside the rendered 32² frames.
