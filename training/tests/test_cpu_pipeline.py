@@ -1,7 +1,7 @@
 """scripts/cpu-pipeline on tiny inputs: the renders it runs (in order, resumable sets at
 fixed seeds), the validation/judging split of the judging scenes, a fine-tune from a
-starting checkpoint selected on the validation scenes only, and the judgement of the run
-beside the models it started from on the held-out scenes."""
+starting checkpoint selected on the validation scenes only, a distillation run, and the
+judgement of the run beside the models it started from on the held-out scenes."""
 
 import json
 import os
@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mcdenoise_train import data, train_ms
@@ -40,16 +41,22 @@ def _renamed(root: Path, prefix: str, split: str) -> Path:
 
 def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     env = {**os.environ, "DRY": "1", "JUDGE_SCENES": "2", "DOF_SCENES": "3", "HIRES_SCENES": "4",
-           "TEST_RENDERER": "mitsuba", "RES_A": str(tmp_path / "a")}
+           "DISTILL_SCENES": "5", "TEST_RENDERER": "mitsuba", "RES_A": str(tmp_path / "a")}
     lines = _run(env, "render").stdout.splitlines()
-    assert len(lines) == 5 and all(line.startswith("mcdenoise_train.datagen.dataset ") for line in lines)
-    a, b, test, dof, hires = lines
+    assert len(lines) == 6 and all(line.startswith("mcdenoise_train.datagen.dataset ") for line in lines)
+    a, b, test, dof, distill, hires = lines
     assert f"--out {tmp_path / 'a'} --scenes 2 --seed-base 500000 --size 384" in a
     assert "--scenes 2 --seed-base 510000" in b and "--families dof,interior,textures,room,open,metals" in b
     assert "--test-scenes 8 --size 128 --spp 4,16,64 --ref-spp 4096 --renderer mitsuba" in test
     # DOF_SCENES (3) within DOF_FIRST (8): the whole set before the scenes of every family.
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
+    # Distillation scenes (DISTILL_SCENES 5 within DISTILL_FIRST 16): references of few samples.
+    assert "--scenes 5 --seed-base 640000 --size 384 --spp 1,2,4,8,16,32,64 --ref-spp 64 " in distill
+    assert "--families" not in distill
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
+    # Beyond DISTILL_FIRST, the rest of them come last.
+    lines = _run({**env, "DISTILL_SCENES": "30", "DISTILL_FIRST": "4"}, "render").stdout.splitlines()
+    assert len(lines) == 7 and "--scenes 4 --seed-base 640000" in lines[4] and "--scenes 30 --seed-base 640000" in lines[6]
     # With Cycles: Cycles' test scenes right after Mitsuba's (no run is judged without both),
     # then DOF_FIRST depth-of-field training scenes (minutes each), the Mitsuba training
     # scenes of every family (minutes each, where a Cycles scene takes most of an hour),
@@ -58,16 +65,17 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     # depth-of-field scenes.
     lines = _run({**env, "TEST_RENDERER": "both", "CYCLES_SCENES": "5", "DOF_SCENES": "24"},
                  "render").stdout.splitlines()
-    assert len(lines) == 9
+    assert len(lines) == 10
     assert lines[2].endswith("--renderer mitsuba") and lines[3].endswith("--renderer cycles")
     assert "--test-scenes 8" in lines[3]
     assert "--scenes 8 --seed-base 620000" in lines[4] and "--families dof,open" in lines[4]
-    assert "--seed-base 600000" in lines[5] and lines[5].endswith("--renderer mitsuba")
-    assert "--scenes 6 --seed-base 520988 --size 384 --spp 4,16,64 --ref-spp 2048" in lines[6]
-    assert lines[6].endswith("--renderer cycles --families dof,caustics,metals,interior,room")
-    assert "--scenes 5 --seed-base 630000 --size 384" in lines[7] and lines[7].endswith("--renderer cycles")
-    assert "--families" not in lines[7]
-    assert "--scenes 24 --seed-base 620000" in lines[8] and "--families dof,open" in lines[8]
+    assert "--seed-base 640000" in lines[5]
+    assert "--seed-base 600000" in lines[6] and lines[6].endswith("--renderer mitsuba")
+    assert "--scenes 6 --seed-base 520988 --size 384 --spp 4,16,64 --ref-spp 2048" in lines[7]
+    assert lines[7].endswith("--renderer cycles --families dof,caustics,metals,interior,room")
+    assert "--scenes 5 --seed-base 630000 --size 384" in lines[8] and lines[8].endswith("--renderer cycles")
+    assert "--families" not in lines[8]
+    assert "--scenes 24 --seed-base 620000" in lines[9] and "--families dof,open" in lines[9]
 
 
 def test_the_cycles_judging_seeds_give_the_scenes_the_pipeline_names():
@@ -157,6 +165,18 @@ def test_split_train_and_judge_end_to_end(tmp_path):
     config = json.loads((home / "r2" / "config.json").read_text())
     assert config["data"] == [str(dof), str(hires), str(home / "val384"), str(home / "val384c")]
     assert "resumed at step 1" in _run(env, "train", "r2", "60", "--steps", "1").stderr
+
+    # `distill`: the distillation set beside the others, the loss against the teacher's output.
+    distilled = _renamed(make_dataset(tmp_path / "distilled", frames=3, size=48), "s", "train")
+    assert "run `" in _run({**env, "DOF": str(tmp_path / "none"), "HIRES": str(tmp_path / "none"),
+                            "DISTILL": str(tmp_path / "none")}, "distill", "k", "60", ok=False).stderr
+    _run({**env, "DISTILL": str(distilled), "TEACHER": str(start / "best.pt")}, "distill", "k", "60",
+         "--steps", "20", "--val-every", "20")
+    config = json.loads((home / "k" / "config.json").read_text())
+    assert config["data"] == [str(dof), str(hires), str(distilled), str(home / "val384"), str(home / "val384c")]
+    assert config["teacher"] == str(start / "best.pt") and config["distill"] == 1.0
+    rows = [json.loads(line) for line in (home / "k" / "log.jsonl").read_text().splitlines()]
+    assert rows and all(np.isfinite(r["distill"]) for r in rows)
 
     res = _run(env, "judge", "r")
     assert "no-test/manifest.jsonl, skipped" in res.stderr
