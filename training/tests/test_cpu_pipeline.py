@@ -50,7 +50,7 @@ def test_render_runs_the_judging_test_and_training_sets_in_order(tmp_path):
     assert "--test-scenes 8 --size 128 --spp 4,16,64 --ref-spp 4096 --renderer mitsuba" in test
     # DOF_SCENES (3) within DOF_FIRST (8): the whole set before the scenes of every family.
     assert "--scenes 3 --seed-base 620000" in dof and "--families dof,open" in dof
-    # Distillation scenes (DISTILL_SCENES 5 within DISTILL_FIRST 16): references of few samples.
+    # Distillation scenes (DISTILL_SCENES 5 within DISTILL_FIRST): references of few samples.
     assert "--scenes 5 --seed-base 640000 --size 384 --spp 1,2,4,8,16,32,64 --ref-spp 64 " in distill
     assert "--families" not in distill
     assert "--scenes 4 --seed-base 600000" in hires and "--val-fraction 0 " in hires
