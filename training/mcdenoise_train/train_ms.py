@@ -29,7 +29,8 @@ Recipe:
   covariance, the depth dropped in half the patches); exported as the `beauty` variant.
 - **Distillation** (`--teacher CKPT --distill W`): the loss is (1 − W) × the loss above
   against the reference plus W × the same loss against a trained network's output on the
-  same patch, for a cheaper shape learning from the shipped one (`--init … --reshape`).
+  same patch, for a cheaper shape learning from the shipped one (`--init … --reshape`); at
+  W = 1 the references are not compared (`step_loss`).
 - **Blends kept open** (`--blend-bound Z`): a penalty on blend logits beyond ±Z, so that no
   pyramid level's blend saturates at 0 or 1, where it passes almost no gradient and shuts
   the levels below it for good (docs/training.md, "The blends had shut the coarse levels").
@@ -345,6 +346,30 @@ def distill_batch(teacher, b: dict[str, torch.Tensor], autocast: bool) -> dict[s
     components in their preprocessed domains and its final color."""
     t = forward(teacher, b, autocast)
     return {**b, "diffuse_target": t.diffuse_pre, "specular_target": t.specular_pre, "reference": t.total}
+
+
+def step_loss(net, out_b: list[torch.Tensor], rec, b: dict[str, torch.Tensor], a: argparse.Namespace,
+              perceptual=None, teacher=None, autocast: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """One batch's training loss and its logged parts: `losses.ms_loss` against the
+    references, mixed with the same loss against the teacher's output (`--distill W`: the
+    teacher's share; at W = 1 the references' loss is not computed), then the blend penalty
+    (`--blend-bound`), which keeps its full weight whatever W is."""
+    def loss_to(target: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        return losses.ms_loss(rec, target, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual,
+                              perceptual_weight=a.perceptual, relmse_weight=a.relmse, level_weight=a.level_loss,
+                              specular_pyramid=getattr(net, "specular_pyramid", "log"), msssim_weight=a.msssim)
+
+    w = a.distill if teacher is not None else 0.0
+    loss, parts = loss_to(b) if w < 1.0 else (rec.total.new_zeros(()), {})
+    if teacher is not None:
+        taught, _ = loss_to(distill_batch(teacher, b, autocast))
+        parts["distill"] = float(taught.detach())
+        loss = (1.0 - w) * loss + w * taught
+    if a.blend_bound > 0:
+        excess = blend_excess(out_b, net.levels, a.blend_bound)
+        parts["blend_excess"] = float(excess.detach())
+        loss = loss + a.blend_penalty * excess
+    return loss, parts
 
 
 @torch.no_grad()
@@ -754,19 +779,7 @@ def main(argv=None) -> int:
         b = {k: v.contiguous(memory_format=torch.channels_last) for k, v in b.items()}
         out_b = outputs(net, b, autocast)
         rec = reconstructed(net, out_b, b)
-        loss, parts = losses.ms_loss(rec, b, l1_weight=a.l1, ssim_weight=a.ssim, perceptual=perceptual,
-                                     perceptual_weight=a.perceptual, relmse_weight=a.relmse,
-                                     level_weight=a.level_loss, specular_pyramid=getattr(net, "specular_pyramid", "log"),
-                                     msssim_weight=a.msssim)
-        if a.blend_bound > 0:
-            excess = blend_excess(out_b, net.levels, a.blend_bound)
-            parts["blend_excess"] = float(excess.detach())
-            loss = loss + a.blend_penalty * excess
-        if teacher is not None:
-            taught, _ = losses.ms_loss(rec, distill_batch(teacher, b, autocast), l1_weight=a.l1, ssim_weight=a.ssim,
-                                       perceptual=perceptual, perceptual_weight=a.perceptual)
-            parts["distill"] = float(taught.detach())
-            loss = (1.0 - a.distill) * loss + a.distill * taught
+        loss, parts = step_loss(net, out_b, rec, b, a, perceptual, teacher, autocast)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)

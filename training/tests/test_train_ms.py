@@ -301,6 +301,30 @@ def test_distillation_targets_are_the_teachers_output():
     assert float(loss.detach()) > 1e-3
 
 
+def test_step_loss_mixes_the_teacher_in_before_the_blend_penalty():
+    args = _args(ext_width=4, ext_blocks=1, enc="6,6,8,8", dec="6,6,8,8", ssim=0.2, msssim=0.0)
+    torch.manual_seed(0)
+    net = train_ms.from_arguments(args, 28)
+    raw, ref = _raw_batch(n=2, size=33)
+    b = train_ms.batch_inputs(raw, ref, torch.ones(2, 2), 0.0, torch.Generator().manual_seed(0), crop=32)
+    out = train_ms.outputs(net, b, autocast=False)
+    rec = train_ms.reconstructed(net, out, b)
+    # A bound this tight leaves every blend logit beyond it: the penalty is positive.
+    excess = float(train_ms.blend_excess(out, net.levels, 1e-3))
+    assert excess > 0
+    reference, _ = train_ms.step_loss(net, out, rec, b, args)
+    # The student as its own teacher at W = 1: the distillation term is 0 and the references
+    # are not compared, so all that is left is the blend penalty at its full weight.
+    a1 = _args(**{**vars(args), "distill": 1.0, "blend_bound": 1e-3, "blend_penalty": 2.0})
+    loss, parts = train_ms.step_loss(net, out, rec, b, a1, teacher=net)
+    assert parts["distill"] < 1e-5 and "smape_diffuse" not in parts
+    assert float(loss) == pytest.approx(parts["distill"] + 2.0 * excess, rel=1e-4, abs=1e-6)
+    # At W = 0.25 the references weigh 0.75, the penalty still 1.
+    a2 = _args(**{**vars(a1), "distill": 0.25})
+    loss, parts = train_ms.step_loss(net, out, rec, b, a2, teacher=net)
+    assert float(loss) == pytest.approx(0.75 * float(reference) + 0.25 * parts["distill"] + 2.0 * excess, rel=1e-4)
+
+
 def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
     from mcdenoise_train.export import read_metadata
 
