@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import copy
 import io
+import json
 import os
 import sys
 import warnings
@@ -68,6 +69,7 @@ def metadata_for(model: DenoiserNet, component: str, variant: str) -> dict[str, 
         "mcdenoise.receptive_radius": str(model.receptive_radius()),
         "mcdenoise.flops_per_pixel": str(model.flops_per_pixel()),
         "mcdenoise.architecture": model.description(),
+        "mcdenoise.torch_config": json.dumps(model.config, sort_keys=True),
     }
 
 
@@ -75,6 +77,44 @@ def read_metadata(path: str | os.PathLike) -> dict[str, str]:
     """metadata_props of an ONNX file as a dict."""
     proto = onnx.load(str(path), load_external_data=False)
     return {p.key: p.value for p in proto.metadata_props}
+
+
+def networks_from_onnx(directory: str | os.PathLike) -> dict[str, DenoiserNet]:
+    """The torch networks ({'diffuse': net, 'specular': net}, eval mode) whose weights a
+    contract-v1 variant directory holds: each file's `mcdenoise.torch_config` rebuilds the
+    network, its initializers (named as the network's parameters) fill it. So a shipped
+    pair is its own checkpoint (`train_ms --arch lin2020 --init DIR`) and the parity tests
+    run the shipped weights in torch."""
+    from onnx import numpy_helper
+
+    nets = {}
+    for c in COMPONENTS:
+        path = Path(directory) / f"{c}.onnx"
+        proto = onnx.load(str(path))
+        meta = {p.key: p.value for p in proto.metadata_props}
+        if "mcdenoise.torch_config" not in meta:
+            raise ValueError(f"{path}: no mcdenoise.torch_config metadata (exported before it was written): "
+                             "export it again from its checkpoint")
+        net = DenoiserNet(**json.loads(meta["mcdenoise.torch_config"]))
+        stored = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
+        # The exporter keeps one initializer of several equal ones (zero biases of an
+        # untrained network, say): each convolution's own inputs say which it reads. Its
+        # node is named after its module's scopes, e.g. `/extractor/extractor.1/conv1/Conv`.
+        weights = dict(stored)
+        for node in proto.graph.node:
+            if node.op_type != "Conv":
+                continue
+            scopes = node.name.strip("/").split("/")[:-1]
+            module = scopes[-1] if "." in scopes[-1] or len(scopes) == 1 else f"{scopes[-2]}.{scopes[-1]}"
+            for param, name in zip(("weight", "bias"), node.input[1:]):
+                if name in stored:
+                    weights.setdefault(f"{module}.{param}", stored[name])
+        missing = sorted(set(net.state_dict()) - set(weights))
+        if missing:
+            raise ValueError(f"{path}: no initializer for {', '.join(missing[:3])}{' ...' if len(missing) > 3 else ''}")
+        net.load_state_dict({k: weights[k] for k in net.state_dict()})
+        nets[c] = net.eval()
+    return nets
 
 
 def _to_proto(model: DenoiserNet, in_features: int) -> onnx.ModelProto:

@@ -1,5 +1,6 @@
 """ONNX export: graph shape, metadata, onnxruntime agreement, CLI, committed fixtures."""
 
+import json
 import re
 import shlex
 from pathlib import Path
@@ -80,6 +81,7 @@ def test_export_graph_metadata_and_ort(tmp_path, arch, variant):
         "mcdenoise.receptive_radius": str(net.receptive_radius()),
         "mcdenoise.flops_per_pixel": str(net.flops_per_pixel()),
         "mcdenoise.architecture": net.description(),
+        "mcdenoise.torch_config": json.dumps(net.config, sort_keys=True),
     }
 
     rng = np.random.default_rng(6)
@@ -91,6 +93,28 @@ def test_export_graph_metadata_and_ort(tmp_path, arch, variant):
         out = run_ort(path, color, feats)
         assert out.shape == (n, 441, h, w)
         assert np.max(np.abs(out - ref)) <= 1e-4 * max(1.0, np.max(np.abs(ref)))
+
+
+def test_a_pair_is_rebuilt_from_its_onnx_files(tmp_path):
+    from mcdenoise_train.export import networks_from_onnx
+
+    torch.manual_seed(4)
+    nets = {c: DenoiserNet(in_features=28, **SMALL["separate"]) for c in ("diffuse", "specular")}
+    for c, net in nets.items():
+        export_onnx(net, tmp_path / "v" / f"{c}.onnx", c, "full", name="v")
+    back = networks_from_onnx(tmp_path / "v")
+    for c, net in nets.items():
+        assert back[c].config == net.config
+        for k, v in net.state_dict().items():
+            assert torch.equal(back[c].state_dict()[k], v), (c, k)
+    # A file exported before the key existed says what to do.
+    m = onnx.load(str(tmp_path / "v" / "specular.onnx"))
+    keep = [p for p in m.metadata_props if p.key != "mcdenoise.torch_config"]
+    del m.metadata_props[:]
+    m.metadata_props.extend(keep)
+    onnx.save(m, str(tmp_path / "v" / "specular.onnx"))
+    with pytest.raises(ValueError, match="specular.onnx: no mcdenoise.torch_config"):
+        networks_from_onnx(tmp_path / "v")
 
 
 def test_export_rejects_mismatches(tmp_path):
