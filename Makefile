@@ -175,19 +175,23 @@ reliability: setup-serve build
 	  cargo test --release --locked --test integration -- bad_inputs:: --nocapture
 
 ## Fuzzing (docs/reliability.md) with cargo fuzz on nightly Rust (`cargo install cargo-fuzz`):
-## each target for FUZZ_SECONDS, growing fuzz/corpus; crashes land in fuzz/regressions/<target>/,
-## which `make test` replays (tests/fuzz_regressions.rs). Minimise the corpus before committing
-## it: `make fuzz-cmin`.
+## each target for FUZZ_SECONDS, growing fuzz/corpus (unpacked from fuzz/corpus.zip, the form
+## the repository keeps it in: scripts/fuzz-corpus); crashes land in fuzz/regressions/<target>/,
+## which `make test` replays with the corpus (tests/fuzz_regressions.rs). Minimise the corpus
+## and pack it back before committing it: `make fuzz-cmin`.
 FUZZ_SECONDS ?= 600
 FUZZ_TARGETS ?= exr_frame http_submit grpc_chunks
 FUZZ_FLAGS = -max_len=65536 -rss_limit_mb=2048 -malloc_limit_mb=512 -timeout=20 -print_final_stats=1
 fuzz: setup-serve
+	[ -d fuzz/corpus ] || python3 scripts/fuzz-corpus unpack
 	cd fuzz && for t in $(FUZZ_TARGETS); do mkdir -p corpus/$$t regressions/$$t && \
 	  cargo +nightly fuzz run -s none $$t corpus/$$t -- $(FUZZ_FLAGS) -max_total_time=$(FUZZ_SECONDS) \
 	    -artifact_prefix=regressions/$$t/ || exit 1; done
 
 fuzz-cmin: setup-serve
+	[ -d fuzz/corpus ] || python3 scripts/fuzz-corpus unpack
 	cd fuzz && for t in $(FUZZ_TARGETS); do cargo +nightly fuzz cmin -s none $$t corpus/$$t -- -max_len=65536 || exit 1; done
+	python3 scripts/fuzz-corpus pack
 
 ## Production network (contract v2, docs/training.md): trains msnet on DATA in the
 ## background-friendly, resumable way; on a GPU machine use scripts/gpu-pipeline.

@@ -1,6 +1,8 @@
-//! Replays the kept fuzz corpus and every crash reproducer (fuzz/corpus/<target>,
+//! Replays the kept fuzz corpus and every crash reproducer (`<target>/` in fuzz/corpus.zip,
 //! fuzz/regressions/<target>) through the same harnesses `cargo fuzz` runs, on stable Rust,
-//! so that what the fuzzer once found stays fixed (docs/reliability.md).
+//! so that what the fuzzer once found stays fixed (docs/reliability.md). The corpus is kept
+//! as one archive (scripts/fuzz-corpus): thousands of small files would cost a kilobyte each
+//! in the checkout a GPU lease carries.
 
 #[path = "../fuzz/src/harness.rs"]
 #[allow(dead_code)]
@@ -11,13 +13,21 @@ use std::path::PathBuf;
 fn inputs(target: &str) -> Vec<(PathBuf, Vec<u8>)> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("fuzz");
     let mut out = Vec::new();
-    for dir in [root.join("corpus").join(target), root.join("regressions").join(target)] {
-        let Ok(entries) = std::fs::read_dir(&dir) else { continue };
-        for entry in entries.flatten() {
-            let path = entry.path();
-            let bytes = std::fs::read(&path).unwrap();
-            out.push((path, bytes));
+    let archive = root.join("corpus.zip");
+    let mut zip = zip::ZipArchive::new(std::fs::File::open(&archive).unwrap()).unwrap();
+    for i in 0..zip.len() {
+        let mut entry = zip.by_index(i).unwrap();
+        if entry.is_file() && entry.name().starts_with(&format!("{target}/")) {
+            let mut bytes = Vec::new();
+            std::io::Read::read_to_end(&mut entry, &mut bytes).unwrap();
+            out.push((archive.join(entry.name()), bytes));
         }
+    }
+    let Ok(entries) = std::fs::read_dir(root.join("regressions").join(target)) else { return out };
+    for entry in entries.flatten() {
+        let path = entry.path();
+        let bytes = std::fs::read(&path).unwrap();
+        out.push((path, bytes));
     }
     out.sort();
     out
