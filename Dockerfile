@@ -65,6 +65,7 @@ COPY scripts/healthcheck /usr/local/bin/mcdenoise-healthcheck
 COPY models/full /opt/mcdenoise/models/full
 COPY models/nocov /opt/mcdenoise/models/nocov
 COPY models/lin2020 /opt/mcdenoise/models/lin2020
+COPY models/lin2020-narrow /opt/mcdenoise/models/lin2020-narrow
 COPY models/beauty /opt/mcdenoise/models/beauty
 COPY models/MODEL_CARD.md /opt/mcdenoise/models/
 

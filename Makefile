@@ -96,7 +96,7 @@ train: setup-train build
 
 ## Quality (docs/results.md): the noisy input, the default variant (`full` on frames with
 ## covariance, `nocov` on frames without), `nocov`, `beauty` (each frame as a beauty-only file
-## gives it: no split, no variances), `lin2020` (frames with covariance only)
+## gives it: no split, no variances), `lin2020` and `lin2020-narrow` (frames with covariance only)
 ## and OIDN (high, balanced, fast), per scene and sample count, with plots and side-by-side
 ## crops, and the firefly check (20 injected outliers per frame, with and without the
 ## handling; docs/fireflies.md), on each set that is present: the validation scenes that chose
@@ -112,7 +112,7 @@ TEST_DATA ?= data-test
 TEST_SPLIT ?= test
 TEST_OUT ?= test-both
 EVAL_SETS = $(VAL_DATA):val:val $(HELDOUT_DATA):test:heldout-384 $(HELDOUT_C_DATA):test:heldout-384-cycles $(TEST_DATA):$(TEST_SPLIT):$(TEST_OUT)
-EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method beauty=$(CURDIR)/models:beauty --method lin2020=$(CURDIR)/models:lin2020 --oidn --oidn-quality high,balanced,fast --crops 4 --outliers 20
+EVAL_METHODS = --method default=$(CURDIR)/models --method nocov=$(CURDIR)/models:nocov --method beauty=$(CURDIR)/models:beauty --method lin2020=$(CURDIR)/models:lin2020 --method lin2020-narrow=$(CURDIR)/models:lin2020-narrow --oidn --oidn-quality high,balanced,fast --crops 4 --outliers 20
 eval: setup-train build
 	for set in $(EVAL_SETS); do \
 	  dir=$${set%%:*} rest=$${set#*:}; split=$${rest%%:*} out=$${rest#*:}; \

@@ -34,7 +34,7 @@ from mcdenoise_train.data import engine_binary  # noqa: E402
 from mcdenoise_train.evaluate import oidn_inputs, oidn_method  # noqa: E402
 from mcdenoise_train.exr import read_exr  # noqa: E402
 
-VARIANTS = {"default": "full", "nocov": "nocov", "beauty": "beauty", "lin2020": "lin2020"}
+VARIANTS = {"default": "full", "nocov": "nocov", "beauty": "beauty", "lin2020": "lin2020", "lin2020-narrow": "lin2020-narrow"}
 QUALITIES = ("high", "balanced", "fast")
 
 
@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     p.add_argument("--frame", default=str(ROOT / "target/bench/frame-1280x720.exr"))
     p.add_argument("--models", default=str(ROOT / "models"))
     p.add_argument("--results", default=str(ROOT / "docs/results/test-both/results.jsonl"))
-    p.add_argument("--variants", default="default,beauty,lin2020", help=f"of {', '.join(VARIANTS)}")
+    p.add_argument("--variants", default="default,beauty,lin2020,lin2020-narrow", help=f"of {', '.join(VARIANTS)}")
     p.add_argument("--qualities", default=",".join(QUALITIES), help="OIDN's")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--runs", type=int, default=3)

@@ -129,7 +129,7 @@ def test_every_copied_path_and_script_exists_in_the_build_context():
         p = ROOT / src.rstrip("/")
         assert p.exists(), f"{src} named in the Dockerfile does not exist"
         assert dockerignore_includes(src.rstrip("/")), f"{src} is excluded by .dockerignore"
-    for model in ["models/full/model.onnx", "models/nocov/model.onnx", "models/lin2020/diffuse.onnx", "src/main.rs", "proto/mcdenoise/v1/denoise.proto"]:
+    for model in ["models/full/model.onnx", "models/nocov/model.onnx", "models/lin2020/diffuse.onnx", "models/lin2020-narrow/diffuse.onnx", "src/main.rs", "proto/mcdenoise/v1/denoise.proto"]:
         assert dockerignore_includes(model), model
     for heavy in ["target/release/mcdenoise", "runs/x", "data/x.exr", ".git/HEAD"]:
         assert not dockerignore_includes(heavy), heavy

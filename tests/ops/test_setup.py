@@ -174,7 +174,7 @@ def test_the_image_takes_only_what_serving_needs():
         return (copied(base) if base in all_stages else []) + own
 
     serving = ["/out/bin/mcdenoise", "scripts/healthcheck", "models/full", "models/nocov", "models/lin2020",
-               "models/beauty", "models/MODEL_CARD.md"]
+               "models/lin2020-narrow", "models/beauty", "models/MODEL_CARD.md"]
     assert list(all_stages)[-1] == "cpu"
     assert copied("cpu") == [*serving, "/out/lib/libonnxruntime.so.1.31.1"], copied("cpu")
     assert copied("gpu") == [*serving, "/out/lib/"], copied("gpu")

@@ -53,7 +53,7 @@ from .model import ARCHS, DenoiserNet
 
 OPSET = 17
 # Conv, Relu, Add, Concat: the networks; Sign, Abs, Log, Mul, Constant: the symlog input transform.
-ALLOWED_OPS = frozenset({"Conv", "Relu", "Add", "Concat", "Sign", "Abs", "Log", "Mul", "Constant"})
+ALLOWED_OPS = frozenset({"Conv", "Relu", "Add", "Concat", "Sign", "Abs", "Log", "Mul", "Constant", "Cast"})
 _TRACE_HW = (16, 24)
 _VERIFY_SHAPE = (2, 19, 27)  # N, H, W: differs from the traced shape on purpose
 
@@ -96,7 +96,11 @@ def networks_from_onnx(directory: str | os.PathLike) -> dict[str, DenoiserNet]:
             raise ValueError(f"{path}: no mcdenoise.torch_config metadata (exported before it was written): "
                              "export it again from its checkpoint")
         net = DenoiserNet(**json.loads(meta["mcdenoise.torch_config"]))
-        stored = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in proto.graph.initializer}
+        stored = {i.name: torch.from_numpy(numpy_helper.to_array(i).astype(np.float32)) for i in proto.graph.initializer}
+        # Weights stored in float16 (`half_weight_storage`) reach the graph through a Cast.
+        for node in proto.graph.node:
+            if node.op_type == "Cast" and node.input[0] in stored:
+                stored[node.output[0]] = stored[node.input[0]]
         # The exporter keeps one initializer of several equal ones (zero biases of an
         # untrained network, say): each convolution's own inputs say which it reads. Its
         # node is named after its module's scopes, e.g. `/extractor/extractor.1/conv1/Conv`.
@@ -220,10 +224,14 @@ def export_onnx(
     variant: str,
     verify: bool = True,
     name: str | None = None,
+    half_weights: bool = False,
 ) -> onnx.ModelProto:
     """Write `model` as `component` ('diffuse'/'specular') of `variant` ('full'/'nocov',
     its feature set). `name` is the served variant's name (its directory, e.g. `lin2020`)
-    when it differs from the feature set's."""
+    when it differs from the feature set's. `half_weights` stores the weights rounded to
+    float16, each cast back to float32 in the graph (`half_weight_storage`): the file at
+    half the size, the computation in float32 as before; the network verified against is
+    the rounded one."""
     if component not in COMPONENTS:
         raise ValueError(f"unknown component {component!r}; expected one of {COMPONENTS}")
     if variant not in VARIANTS:
@@ -234,7 +242,13 @@ def export_onnx(
             f"has {len(feature_names(variant))}"
         )
     net = copy.deepcopy(model).cpu().float().eval()
+    if half_weights:
+        with torch.no_grad():
+            for p in net.parameters():
+                p.copy_(p.half().float())
     proto = _to_proto(net, net.in_features)
+    if half_weights:
+        half_weight_storage(proto)
     _check_graph(proto, net.in_features)
     name = name or variant
     metadata = {**metadata_for(net, component, variant), "mcdenoise.variant": name}
@@ -242,6 +256,33 @@ def export_onnx(
     if verify:
         verify_onnx(path, net)
     return proto
+
+
+def half_weight_storage(proto: onnx.ModelProto) -> None:
+    """Every float32 initializer stored as float16 under `<name>.fp16`, with a Cast node in
+    front of the graph giving `<name>` back in float32 (ONNX Runtime folds the casts when it
+    loads the graph). The values must already be representable in float16: the caller rounds
+    the weights first, so the graph computes exactly what the rounded network does."""
+    from onnx import helper, numpy_helper
+
+    g = proto.graph
+    inits, casts = [], []
+    for init in g.initializer:
+        if init.data_type != onnx.TensorProto.FLOAT:
+            inits.append(init)
+            continue
+        a = numpy_helper.to_array(init)
+        h = a.astype(np.float16)
+        if not np.array_equal(h.astype(np.float32), a):
+            raise ValueError(f"initializer {init.name} is not representable in float16: round the weights first")
+        inits.append(numpy_helper.from_array(h, f"{init.name}.fp16"))
+        casts.append(helper.make_node("Cast", [f"{init.name}.fp16"], [init.name], to=onnx.TensorProto.FLOAT,
+                                      name=f"/{init.name}/Cast"))
+    del g.initializer[:]
+    g.initializer.extend(inits)
+    nodes = casts + list(g.node)
+    del g.node[:]
+    g.node.extend(nodes)
 
 
 def write_model(proto: onnx.ModelProto, metadata: dict[str, str], doc: str, path: str | os.PathLike) -> None:

@@ -358,6 +358,17 @@ def test_paper_network_trains_and_exports_as_lin2020(tmp_path):
         assert after[c].config == start[c].config
         for k, v in start[c].state_dict().items():
             assert torch.allclose(after[c].state_dict()[k], v, atol=1e-6), (c, k)
+    # Or from the served pair's directory: its files carry the configuration and the weights,
+    # stored rounded to float16.
+    assert train_ms.main(["--data", str(root), "--out", str(tmp_path / "served"), "--arch", "lin2020",
+                          "--init", str(models / "lin2020"), "--steps", "1", "--lr", "1e-12",
+                          "--patch", "32", "--batch", "2", "--threads", "2", "--device", "cpu"]) == 0
+    served = load_checkpoint(tmp_path / "served" / "best.pt")[0]
+    exported = load_checkpoint(tmp_path / "run" / "best.pt")[0]
+    for c in ("diffuse", "specular"):
+        assert served[c].config == exported[c].config
+        for k, v in exported[c].state_dict().items():
+            assert torch.equal(served[c].state_dict()[k], v.half().float()), (c, k)
     with pytest.raises(SystemExit, match="--reshape narrows the production network"):
         train_ms.main(["--data", str(root), "--out", str(tmp_path / "x"), "--arch", "lin2020", "--reshape",
                        "--init", str(tmp_path / "run" / "best.pt"), "--steps", "1"])
