@@ -52,7 +52,8 @@ from .contract import (
 from .model import ARCHS, DenoiserNet
 
 OPSET = 17
-# Conv, Relu, Add, Concat: the networks; Sign, Abs, Log, Mul, Constant: the symlog input transform.
+# Conv, Relu, Add, Concat: the networks; Sign, Abs, Log, Mul, Constant: the symlog input transform;
+# Cast: weights stored in float16 (`half_weight_storage`).
 ALLOWED_OPS = frozenset({"Conv", "Relu", "Add", "Concat", "Sign", "Abs", "Log", "Mul", "Constant", "Cast"})
 _TRACE_HW = (16, 24)
 _VERIFY_SHAPE = (2, 19, 27)  # N, H, W: differs from the traced shape on purpose

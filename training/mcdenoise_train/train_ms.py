@@ -77,7 +77,7 @@ from . import losses
 from .checkpoint import load_checkpoint, load_msnet, load_state, save_checkpoint, save_msnet, save_state
 from .contract import FEATURES_FULL, NOCOV_INDICES
 from .data import manifest_frames
-from .export import networks_from_onnx
+from .export import export_onnx, networks_from_onnx
 from .exr import read_exr
 from .files import append_jsonl, atomic_path, open_append
 from .model import DenoiserNet, paper_config
@@ -456,8 +456,6 @@ def export_lin2020(checkpoint: Path, models: Path) -> None:
     """The paper's pair as contract-v1 files in `models/lin2020/`, named variant `lin2020`,
     their weights stored in float16 (computed in float32): 4.5 MB a component instead of 8.9,
     since the repository's working tree is what a GPU lease carries (64 MiB at most)."""
-    from .export import export_onnx
-
     nets, _ = load_checkpoint(checkpoint)
     for c, net in nets.items():
         path = models / "lin2020" / f"{c}.onnx"

@@ -214,6 +214,43 @@ def _compare(name, got, ref, tol):
         )
 
 
+def torch_v1_output(nets: dict, arrs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """What `mcdenoise run --layers diffuse,specular` should write for a contract-v1 pair
+    (`nets[component]`) on the engine's preprocessed tensors `arrs`, in float64: the total
+    and the two components, each [3, H, W], by output channel prefix."""
+    t = lambda k: torch.from_numpy(arrs[k])[None]
+    with torch.no_grad():
+        logits = {c: nets[c](t(f"{c}_color"), t("features")).double() for c in COMPONENTS}
+    r = reconstruct(logits["diffuse"], logits["specular"], t("diffuse_color").double(),
+                    t("specular_color").double(), t("albedo").double())
+    return {"": r.total[0].numpy(), "diffuse.": r.diffuse[0].numpy(), "specular.": r.specular[0].numpy()}
+
+
+def torch_v2_output(net, arrs: dict[str, np.ndarray], h: int, w: int) -> tuple[dict[str, np.ndarray], dict]:
+    """The same for a contract-v2 network on its inputs padded by edge replication
+    (`pad_to_multiple`), cropped to `h` x `w`; also the intermediates (`pad`, `kernels`,
+    `blends`, `gains`, `pre`: each component filtered in its preprocessed domain) for checks
+    of their own."""
+    from mcdenoise_train.msnet import pad_to_multiple
+    from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
+
+    t = lambda k: torch.from_numpy(arrs[k])[None]
+    pad = lambda x: pad_to_multiple(x, net.size_multiple)
+    with torch.no_grad():
+        outputs = net(pad(t("diffuse_color")), pad(t("specular_color")), pad(t("features")))
+        kernels, blends, gains = split_outputs(outputs, net.levels)
+        gains = gains or {c: None for c in COMPONENTS}
+        pyramid = {"diffuse": "log", "specular": net.specular_pyramid}
+        pre = {
+            c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3],
+                                     pyramid=pyramid[c], gains=gains[c])[..., :h, :w].double()
+            for c in COMPONENTS
+        }
+    d = inverse_diffuse(pre["diffuse"], t("albedo").double())[0].numpy()
+    s = inverse_specular(pre["specular"])[0].numpy()
+    return {"": d + s, "diffuse.": d, "specular.": s}, dict(pad=pad, kernels=kernels, blends=blends, gains=gains, pre=pre)
+
+
 @pytest.mark.parametrize("variant", ["full", "nocov"])
 def test_run_matches_torch(request, variant):
     exe = require_engine()
@@ -221,18 +258,7 @@ def test_run_matches_torch(request, variant):
     root = case["root"]
     arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz")
     assert int(arrs["variant"]) == (1 if variant == "full" else 0)
-
-    t = lambda k: torch.from_numpy(arrs[k])[None]
-    with torch.no_grad():
-        logits = {
-            c: case["nets"][(variant, c)](t(f"{c}_color"), t("features")).double()
-            for c in COMPONENTS
-        }
-    r = reconstruct(
-        logits["diffuse"], logits["specular"],
-        t("diffuse_color").double(), t("specular_color").double(), t("albedo").double(),
-    )
-    expect = {"": r.total[0].numpy(), "diffuse.": r.diffuse[0].numpy(), "specular.": r.specular[0].numpy()}
+    expect = torch_v1_output({c: case["nets"][(variant, c)] for c in COMPONENTS}, arrs)
 
     out = root / f"out-{variant}.exr"
     engine(exe, "run", case["paths"][variant], "-o", out, "--models", case["models"],
@@ -323,8 +349,7 @@ def test_beauty_inputs_match_the_training_side(request):
                                                  ("full", "graph"), ("full", "graph-recon"), ("full-log", "engine"),
                                                  ("full-gain", "engine"), ("full-gain", "graph-recon")])
 def test_run_matches_torch_v2(request, variant, compression):
-    from mcdenoise_train.msnet import pad_to_multiple
-    from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
+    from mcdenoise_train.recon_ms import reconstruct_component
 
     exe = require_engine()
     case = request.getfixturevalue("case_v2")
@@ -334,27 +359,17 @@ def test_run_matches_torch_v2(request, variant, compression):
     t = lambda k: torch.from_numpy(arrs[k])[None]
     m = net.size_multiple
     assert H2 % m and W2 % m, "the frame should need padding"
-    pad = lambda x: pad_to_multiple(x, m)
-    with torch.no_grad():
-        outputs = net(pad(t("diffuse_color")), pad(t("specular_color")), pad(t("features")))
-        kernels, blends, gains = split_outputs(outputs, net.levels)
-        gains = gains or {c: None for c in COMPONENTS}
-        pyramid = {"diffuse": "log", "specular": net.specular_pyramid}
-        pre = {
-            c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3],
-                                     pyramid=pyramid[c], gains=gains[c])[..., :H2, :W2].double()
-            for c in COMPONENTS
-        }
-        if variant != "beauty":  # (a beauty-only frame has no specular)
-            # The two specular pyramids give different outputs here: each case tells them apart.
-            other = "log" if net.specular_pyramid == "linear" else "linear"
+    expect, parts = torch_v2_output(net, arrs, H2, W2)
+    pad, kernels, blends, gains, pre = (parts[k] for k in ("pad", "kernels", "blends", "gains", "pre"))
+    pyramid = {"diffuse": "log", "specular": net.specular_pyramid}
+    if variant != "beauty":  # (a beauty-only frame has no specular)
+        # The two specular pyramids give different outputs here: each case tells them apart.
+        other = "log" if net.specular_pyramid == "linear" else "linear"
+        with torch.no_grad():
             other_pre = reconstruct_component(kernels["specular"], blends["specular"],
                                               pad(t("specular_color"))[:, :3], pyramid=other,
                                               gains=gains["specular"])[..., :H2, :W2].double()
-            assert (other_pre - pre["specular"]).abs().max() > 1e-2 * pre["specular"].abs().max()
-    d = inverse_diffuse(pre["diffuse"], t("albedo").double())[0].numpy()
-    s = inverse_specular(pre["specular"])[0].numpy()
-    expect = {"": d + s, "diffuse.": d, "specular.": s}
+        assert (other_pre - pre["specular"]).abs().max() > 1e-2 * pre["specular"].abs().max()
     # The kernels are far from uniform: the result differs from the noisy input.
     assert np.abs(expect[""] - arrs["noisy"]).max() > 0.05 * np.abs(arrs["noisy"]).max()
 

@@ -25,8 +25,7 @@ from mcdenoise_train.checkpoint import load_msnet
 from mcdenoise_train.contract import COMPONENTS
 from mcdenoise_train.export import export_onnx, networks_from_onnx, read_metadata
 from mcdenoise_train.model import paper_config
-from mcdenoise_train.recon import inverse_diffuse, inverse_specular, reconstruct
-from test_parity_engine import _compare_output, engine, preprocess, require_engine
+from test_parity_engine import _compare_output, engine, preprocess, require_engine, torch_v1_output, torch_v2_output
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = ROOT / "models"
@@ -65,12 +64,7 @@ def test_shipped_lin2020_runs_as_its_checkpoint(tmp_path):
     # lin2020 takes the `full` inputs; its firefly rule is not the `full` network's, so the
     # handling is off on both sides.
     arrs = preprocess(exe, FRAME, tmp_path / "in.npz", "--variant", "full", "--fireflies", "off")
-    t = lambda k: torch.from_numpy(arrs[k])[None]
-    with torch.no_grad():
-        logits = {c: nets[c](t(f"{c}_color"), t("features")).double() for c in COMPONENTS}
-    r = reconstruct(logits["diffuse"], logits["specular"], t("diffuse_color").double(),
-                    t("specular_color").double(), t("albedo").double())
-    expect = {"": r.total[0].numpy(), "diffuse.": r.diffuse[0].numpy(), "specular.": r.specular[0].numpy()}
+    expect = torch_v1_output(nets, arrs)
     assert expect[""].shape == (3, H, W)
     out = tmp_path / "out.exr"
     engine(exe, "run", FRAME, "-o", out, "--models", MODELS, "--variant", "lin2020",
@@ -83,8 +77,6 @@ def test_shipped_lin2020_runs_as_its_checkpoint(tmp_path):
 @pytest.mark.parametrize("variant,checkpoint", [("full", "msnet.pt"), ("nocov", "msnet.pt"), ("beauty", "beauty.pt")])
 def test_shipped_multiscale_variants_run_as_their_checkpoints(tmp_path, variant, checkpoint):
     from mcdenoise_train.export_ms import nocov_from_full
-    from mcdenoise_train.msnet import pad_to_multiple
-    from mcdenoise_train.recon_ms import reconstruct_component, split_outputs
 
     exe = require_engine()
     net = load_msnet(CHECKPOINTS / checkpoint)[0]
@@ -100,18 +92,7 @@ def test_shipped_multiscale_variants_run_as_their_checkpoints(tmp_path, variant,
         frame = tmp_path / "nocov.exr"
         write_exr(frame, channels)
     arrs = preprocess(exe, frame, tmp_path / "in.npz", "--variant", variant)
-    t = lambda k: torch.from_numpy(arrs[k])[None]
-    pad = lambda x: pad_to_multiple(x, net.size_multiple)
-    with torch.no_grad():
-        outputs = net(pad(t("diffuse_color")), pad(t("specular_color")), pad(t("features")))
-        kernels, blends, gains = split_outputs(outputs, net.levels)
-        gains = gains or {c: None for c in COMPONENTS}
-        pyramid = {"diffuse": "log", "specular": net.specular_pyramid}
-        pre = {c: reconstruct_component(kernels[c], blends[c], pad(t(f"{c}_color"))[:, :3], pyramid=pyramid[c],
-                                        gains=gains[c])[..., :H, :W].double() for c in COMPONENTS}
-    d = inverse_diffuse(pre["diffuse"], t("albedo").double())[0].numpy()
-    s = inverse_specular(pre["specular"])[0].numpy()
-    expect = {"": d + s, "diffuse.": d, "specular.": s}
+    expect, _ = torch_v2_output(net, arrs, H, W)
     out = tmp_path / "out.exr"
     engine(exe, "run", frame, "-o", out, "--models", MODELS, "--variant", variant, "--reconstruction", "engine",
            "--layers", "diffuse,specular", "--tile-v2", 32)
