@@ -9,7 +9,7 @@ export MCDENOISE_BIN := $(CURDIR)/target/release/mcdenoise
 
 ## Set-up (scripts/setup), in three sets under $(MCDENOISE_HOME); each target below names
 ## the one it needs. setup-serve: the ONNX Runtime library only (29 MB, seconds).
-## setup-train: that, the training environment (venv: torch, Mitsuba; about 6 GB) and
+## setup-train: that, the training environment (venv: torch, Mitsuba; about 5 GB) and
 ## libllvm19. setup-test (= setup): that, the deploy checks' tools (tests/ops) and the
 ## dashboard's browser test (Debian's chromium, playwright-core from npm).
 setup: setup-test

@@ -1,5 +1,5 @@
 """The set-up is split by need (scripts/setup serve|train|test): serving takes only the ONNX
-Runtime library, never the training environment (torch, Mitsuba: about 6 GB). Checked
+Runtime library, never the training environment (torch, Mitsuba: about 5 GB). Checked
 offline: the make targets' dry runs, and scripts/setup serve against stubbed tools and a
 local package index."""
 
@@ -103,6 +103,39 @@ def test_setup_serve_with_the_library_in_place_does_nothing_else(tmp_path):
         assert "ready: ORT library" in r.stderr
         assert not log.exists(), log.read_text()
         assert files_under(home) == ["lib", "lib/libonnxruntime.so.1.31.1"]
+
+
+def test_setup_train_with_everything_in_place_does_nothing_else(tmp_path):
+    """With the library, an environment whose stamp matches the requirements and libllvm19
+    in ldconfig's list, `scripts/setup train` runs neither pip nor apt-get, however long
+    the list: the check reads all of it (a grep that stopped at the first match left
+    ldconfig writing into a closed pipe, which pipefail took for a missing library)."""
+    import hashlib
+
+    home = tmp_path / "home"
+    (home / "lib").mkdir(parents=True)
+    shutil.copy(ort_library(), home / "lib" / "libonnxruntime.so.1.31.1")
+    venv_bin = home / "venv" / "bin"
+    venv_bin.mkdir(parents=True)
+    for tool in ["python", "pip"]:
+        (venv_bin / tool).write_text(f'#!/bin/sh\necho "venv {tool} $*" >> {tmp_path / "calls.log"}\nexit 97\n')
+        (venv_bin / tool).chmod(0o755)
+    reqs = b"".join((ROOT / "training" / f).read_bytes() for f in ["requirements.txt", "requirements-nodeps.txt"])
+    (home / "venv" / ".requirements.sha256").write_text(hashlib.sha256(reqs).hexdigest() + "\n")
+    path, log = stub_tools(tmp_path)
+    stubs = path.split(":")[0]
+    # ldconfig -p as on a Debian machine: the library early in a list of thousands of lines.
+    (tmp_path / "ldconfig.txt").write_text(
+        "\tlibLLVM.so.19.1 (libc6,x86-64) => /lib/x86_64-linux-gnu/libLLVM.so.19.1\n"
+        + "".join(f"\tlibx{i}.so.1 (libc6,x86-64) => /lib/x86_64-linux-gnu/libx{i}.so.1\n" for i in range(20000)))
+    with open(os.path.join(stubs, "ldconfig"), "w") as f:
+        f.write(f"#!/bin/sh\ncat {tmp_path / 'ldconfig.txt'}\n")
+    env = dict(os.environ, MCDENOISE_HOME=str(home), PATH=path)
+    for _ in range(2):
+        r = subprocess.run(["bash", str(ROOT / "scripts" / "setup"), "train"], env=env, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0, r.stderr
+        assert "ready: ORT library" in r.stderr and "installing" not in r.stderr, r.stderr
+        assert not log.exists(), log.read_text()
 
 
 class Index(http.server.BaseHTTPRequestHandler):
