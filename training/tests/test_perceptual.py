@@ -129,3 +129,45 @@ def test_matches_package_flax_network(features):
         ours = features(x01)
     for r, o in zip(ref[:3], ours):  # relu1_2, relu2_2, relu3_3
         assert np.abs(np.asarray(r).transpose(0, 3, 1, 2) - o.numpy()).max() <= 1e-4
+
+
+def test_extract_stands_in_for_the_package(features, tmp_path, monkeypatch):
+    """An extract (float16 weights up to conv3_3) gives the package's features to within
+    1e-3 of their largest value (2e-4 measured), named by MCDENOISE_VGG16 where the package is not installed."""
+    path = perceptual.write_extract(tmp_path / "vgg16.npz")
+    assert path.stat().st_size < 4e6
+    x = torch.rand(2, 3, 40, 56, generator=torch.Generator().manual_seed(3))
+    monkeypatch.setenv(perceptual.EXTRACT_ENV, str(path))
+    monkeypatch.setattr(perceptual.importlib.util, "find_spec", lambda name: None)
+    from_extract = PerceptualFeatures()
+    for a, b in zip(from_extract(x), features(x)):
+        assert (a - b).abs().max() <= 1e-3 * b.abs().max(), (a - b).abs().max() / b.abs().max()
+    y = _blur(_scene(seed=2), 1.0)
+    assert perceptual_loss(_scene(seed=2), y, from_extract) == pytest.approx(
+        float(perceptual_loss(_scene(seed=2), y, features)), rel=1e-2)
+
+
+def test_extract_errors_name_what_is_wrong(tmp_path, monkeypatch):
+    shallow = perceptual.write_extract(tmp_path / "shallow.npz", layers=("relu1_2",))
+    with pytest.raises(ValueError, match=r"relu3_3 needs 7 convolutions; the weights hold 2 \(up to relu1_2\)"):
+        PerceptualFeatures(weights=shallow)
+    assert len(PerceptualFeatures(layers=("relu1_2",), weights=shallow).convs) == 2
+    import numpy as np
+
+    other = tmp_path / "other.npz"
+    np.savez(other, source_sha256=np.array("0" * 64), w0=np.zeros((64, 3, 3, 3), np.float16), b0=np.zeros(64, np.float32))
+    with pytest.raises(RuntimeError, match=r"other\.npz: taken from a file of SHA-256 0000"):
+        PerceptualFeatures(layers=("relu1_1",), weights=other)
+    wrong = tmp_path / "wrong.npz"
+    np.savez(wrong, source_sha256=np.array(perceptual.WEIGHTS_SHA256), w0=np.zeros((32, 3, 3, 3), np.float16),
+             b0=np.zeros(32, np.float32))
+    with pytest.raises(RuntimeError, match=r"wrong\.npz: convolution 0 has shapes \(32, 3, 3, 3\)"):
+        PerceptualFeatures(layers=("relu1_1",), weights=wrong)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(RuntimeError, match=r"junk\.npz: not a VGG-16 extract"):
+        PerceptualFeatures(weights=tmp_path / "junk.npz")
+    monkeypatch.setenv(perceptual.EXTRACT_ENV, str(tmp_path / "missing.npz"))
+    with pytest.raises(FileNotFoundError, match=r"MCDENOISE_VGG16=.*missing\.npz: no such file"):
+        PerceptualFeatures()
+    with pytest.raises(ValueError, match="already an extract"):
+        perceptual.write_extract(tmp_path / "again.npz", source=shallow)
