@@ -34,6 +34,8 @@ CANDIDATES = {
     "dec0-16": {"dec": [16, 32, 48, 64]},
     "ext-blocks-0": {"ext_blocks": 0},
     "dec0-16-ext-blocks-0": {"dec": [16, 32, 48, 64], "ext_blocks": 0},
+    # Decoder level 0 as 1x1 convs of level 1 and of the skip, then one 3x3 (msnet.Lean0).
+    "lean0-16-ext-blocks-0": {"dec": [16, 32, 48, 64], "ext_blocks": 0, "lean0": True},
 }
 
 
@@ -58,7 +60,8 @@ def measure(name: str, shape: dict, h: int, w: int, threads: int, runs: int, tmp
         t = time.perf_counter()
         session.run(None, feeds)
         times.append(time.perf_counter() - t)
-    return {"name": name, "shape": {k: cfg[k] for k in ("ext_width", "ext_blocks", "enc", "dec", "kernel_size", "levels")},
+    keys = ("ext_width", "ext_blocks", "enc", "dec", "kernel_size", "levels", "lean0")
+    return {"name": name, "shape": {k: cfg[k] for k in keys if k in cfg},
             "mflop_per_px": round(net.flops_per_pixel() / 1e6, 4), "receptive_radius": net.receptive_radius(),
             "params": net.param_count(), "size": f"{wp}x{hp}", "threads": threads,
             "seconds": round(sorted(times)[len(times) // 2], 4)}
@@ -67,7 +70,7 @@ def measure(name: str, shape: dict, h: int, w: int, threads: int, runs: int, tmp
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--shape", action="append", default=[],
-                   help="a shape as JSON (msnet arguments: ext_width, ext_blocks, enc, dec, kernel_size, levels); "
+                   help="a shape as JSON (msnet arguments: ext_width, ext_blocks, enc, dec, kernel_size, levels, lean0); "
                         "repeatable; default: the shipped shape and the built-in candidates")
     p.add_argument("--size", default="1280x720", help="region WxH (padded to the network's size multiple)")
     p.add_argument("--threads", type=int, default=2)

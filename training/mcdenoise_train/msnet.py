@@ -15,6 +15,13 @@ far more context for the same cost (Vogels et al. 2018; RenderKit/oidn's U-Nets)
     specular taps) and, below the coarsest level, blend logits [N, 2, H/2^l, W/2^l]
     (and, with `detail_gain`, detail-gain logits [N, 2, H/2^l, W/2^l])
 
+With `lean0`, decoder level 0 is cheaper: instead of two 3x3 convs over the upsampled level
+below concatenated with the skip (the costliest operators on a CPU, at full resolution over
+64 channels), a 1x1 conv of the level below at its own resolution, upsampled, plus a 1x1 conv
+of the skip, then one 3x3 conv (`Lean0`): the same fusion of context and full-resolution
+features, a third of the time of a 768x720 region in ONNX Runtime with the extractors'
+blocks removed as well (docs/training.md, "A cheaper level 0").
+
 `recon_ms.py` turns these into the filtered color (docs/model-contract.md, "Model contract
 v2"): a k x k kernel at each pyramid level of the preprocessed color, blended coarse to
 fine. Inputs are compressed with `symlog` first, as in contract v1; an exported graph
@@ -61,6 +68,21 @@ class _Pair(nn.Sequential):
         super().__init__(_conv(cin, cout), nn.ReLU(), _conv(cout, cout), nn.ReLU())
 
 
+class Lean0(nn.Module):
+    """Decoder level 0 of `MSNet(lean0=True)`: relu(up(1x1(below)) + 1x1(skip)), then a 3x3
+    conv and a relu. The 1x1 conv of the level below runs at its resolution (a 1x1 conv
+    commutes with nearest upsampling), so nothing at full resolution reads more than the
+    skip's channels."""
+
+    def __init__(self, below: int, skip: int, width: int):
+        super().__init__()
+        self.up, self.skip, self.mid = _conv(below, width, 1), _conv(skip, width, 1), _conv(width, width)
+
+    def forward(self, below: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        x = F.interpolate(self.up(below), scale_factor=2.0, mode="nearest") + self.skip(skip)
+        return torch.relu(self.mid(torch.relu(x)))
+
+
 DEFAULT = dict(ext_width=16, ext_blocks=1, enc=(32, 48, 64, 80), dec=(32, 32, 48, 64), kernel_size=5, levels=5,
                specular_pyramid="linear")
 
@@ -88,6 +110,7 @@ class MSNet(nn.Module):
         levels: int = DEFAULT["levels"],
         specular_pyramid: str = DEFAULT["specular_pyramid"],
         detail_gain: bool = False,
+        lean0: bool = False,
     ):
         super().__init__()
         variant_for(in_features)
@@ -103,7 +126,10 @@ class MSNet(nn.Module):
         self.config = dict(
             arch="msnet", in_features=in_features, ext_width=ext_width, ext_blocks=ext_blocks,
             enc=enc, dec=dec, kernel_size=kernel_size, levels=levels, detail_gain=bool(detail_gain),
+            lean0=bool(lean0),
         )
+        if lean0 and levels < 2:
+            raise ValueError("lean0 needs a decoder level 0 (levels >= 2)")
         self.specular_pyramid = specular_pyramid
         taps = kernel_size * kernel_size
         self.color_extractor = Extractor(COMPONENT_COUNT * COLOR_CHANNELS, ext_width, ext_blocks)
@@ -113,7 +139,7 @@ class MSNet(nn.Module):
         self.decoder = nn.ModuleList()
         for l in range(levels - 1):
             below = dec[l + 1] if l + 1 < levels - 1 else widths[levels - 1]
-            self.decoder.append(_Pair(below + widths[l], dec[l]))
+            self.decoder.append(Lean0(below, widths[0], dec[0]) if l == 0 and lean0 else _Pair(below + widths[l], dec[l]))
         self._head_in = [*dec, widths[levels - 1]]
         self.kernel_heads = nn.ModuleList(_conv(self._head_in[l], COMPONENT_COUNT * taps, 1) for l in range(levels))
         self.blend_heads = nn.ModuleList(_conv(self._head_in[l], COMPONENT_COUNT, 1) for l in range(levels - 1))
@@ -121,6 +147,11 @@ class MSNet(nn.Module):
         self.reset_parameters()
         if detail_gain:
             self.add_detail_gain()
+
+    @property
+    def lean0(self) -> bool:
+        """Whether decoder level 0 is a `Lean0` (see the module docstring)."""
+        return bool(self.config.get("lean0"))
 
     @property
     def detail_gain(self) -> bool:
@@ -192,8 +223,11 @@ class MSNet(nn.Module):
         gains: list[torch.Tensor] = [None] * len(self.gain_heads)  # type: ignore[list-item]
         kernels[-1] = self.kernel_heads[-1](x)
         for l in reversed(range(self.levels - 1)):
-            x = F.interpolate(x, scale_factor=2.0, mode="nearest")
-            x = self.decoder[l](torch.cat([x, skips[l]], 1))
+            if l == 0 and self.lean0:
+                x = self.decoder[0](x, skips[0])
+            else:
+                x = F.interpolate(x, scale_factor=2.0, mode="nearest")
+                x = self.decoder[l](torch.cat([x, skips[l]], 1))
             kernels[l] = self.kernel_heads[l](x)
             blends[l] = self.blend_heads[l](x)
             if gains:
@@ -233,7 +267,10 @@ class MSNet(nn.Module):
         logits[-1] = iv
         for l in reversed(range(self.levels - 1)):
             s = 1 << l
-            iv = conv(conv(union(nearest(iv, s), skips[l]), s), s)
+            if l == 0 and self.lean0:  # 1x1 convs, then one 3x3
+                iv = conv(union(nearest(iv, s), skips[0]), s)
+            else:
+                iv = conv(conv(union(nearest(iv, s), skips[l]), s), s)
             logits[l] = iv
         k = self.kernel_size // 2
         pyramid = [(0, 0)]
@@ -262,7 +299,12 @@ class MSNet(nn.Module):
         visit(self.feature_extractor, 1)
         for l in range(self.levels - 1):
             visit(self.encoder[l], 4 ** (l + 1))
-            visit(self.decoder[l], 4 ** l)
+            if l == 0 and self.lean0:  # its 1x1 conv of the level below runs there
+                visit(self.decoder[0].up, 4)
+                visit(self.decoder[0].skip, 1)
+                visit(self.decoder[0].mid, 1)
+            else:
+                visit(self.decoder[l], 4 ** l)
             visit(self.blend_heads[l], 4 ** l)
         for l in range(len(self.gain_heads)):
             visit(self.gain_heads[l], 4 ** l)
@@ -278,7 +320,8 @@ class MSNet(nn.Module):
         return (
             f"msnet: color ({COMPONENT_COUNT}x{COLOR_CHANNELS}) and feature ({self.in_features}) extractors "
             f"width {c['ext_width']}, {c['ext_blocks']} residual block(s); U-Net {self.levels} levels, "
-            f"encoder {c['enc']}, decoder {c['dec']}; {c['kernel_size']}x{c['kernel_size']} kernels per level "
+            f"encoder {c['enc']}, decoder {c['dec']}" + (" (level 0 lean)" if self.lean0 else "")
+            + f"; {c['kernel_size']}x{c['kernel_size']} kernels per level "
             f"and blends; params {self.param_count()}, receptive radius {self.receptive_radius()}"
             + ("; specular pyramid of linear means" if self.specular_pyramid == "linear" else "")
             + ("; detail gains" if self.detail_gain else "")
@@ -297,6 +340,9 @@ def add_shape_arguments(parser) -> None:
                         help="how the reconstruction's specular pyramid averages: `linear` (ln(1 + the mean of s), "
                              f"the default for a new network: {DEFAULT['specular_pyramid']}) or `log` (the mean of "
                              "ln(1 + s), networks before 2026-11-29); a fine-tune keeps its checkpoint's unless given")
+    parser.add_argument("--lean0", action="store_true",
+                        help="decoder level 0 as 1x1 convs of the level below and of the skip, then one 3x3 conv "
+                             "(MSNet.lean0): a cheaper network; with --reshape its level 0 starts new")
     parser.add_argument("--detail-gain", action="store_true",
                         help="per-pixel gains on each pyramid level's own detail (MSNet.add_detail_gain); a fine-tune "
                              "of a checkpoint without them adds them, starting near the checkpoint")
@@ -308,7 +354,7 @@ def from_arguments(a, in_features: int) -> MSNet:
                  enc=[int(x) for x in a.enc.split(",")], dec=[int(x) for x in a.dec.split(",")],
                  kernel_size=a.kernel_size, levels=a.levels,
                  specular_pyramid=a.specular_pyramid or DEFAULT["specular_pyramid"],
-                 detail_gain=getattr(a, "detail_gain", False))
+                 detail_gain=getattr(a, "detail_gain", False), lean0=getattr(a, "lean0", False))
 
 
 @torch.no_grad()
@@ -341,7 +387,24 @@ def transplant(source: MSNet, target: MSNet) -> list[str]:
     def norms(w: torch.Tensor, dim: int) -> torch.Tensor:
         return w.pow(2).sum(dim=[d for d in range(w.dim()) if d != dim]).sqrt()
 
+    if source.lean0 and not target.lean0:
+        raise ValueError("transplant only removes: the source's decoder level 0 is lean, the target's is not")
     for l in reversed(range(levels - 1)):
+        if l == 0 and target.lean0:
+            sp, tp = source.decoder[0], target.decoder[0]
+            if not source.lean0:
+                notes.append("decoder level 0: lean, new")
+                break
+            if tp.mid.out_channels != sp.mid.out_channels:
+                raise ValueError(f"transplant keeps a lean level 0's width: source {sp.mid.out_channels}, "
+                                 f"target {tp.mid.out_channels}")
+            # Its 1x1 conv of level 1 reads that level's kept channels.
+            cols = keep[1] if keep[1] is not None else torch.arange(sp.up.in_channels)
+            tp.load_state_dict({k: v for k, v in sp.state_dict().items() if k != "up.weight"}, strict=False)
+            tp.up.weight.copy_(sp.up.weight[:, cols])
+            for heads in ("kernel_heads", "blend_heads", "gain_heads")[: 3 if source.detail_gain and target.detail_gain else 2]:
+                getattr(target, heads)[0].load_state_dict(getattr(source, heads)[0].state_dict())
+            break
         sp, tp = source.decoder[l], target.decoder[l]
         a, b = sp[0].weight, sp[2].weight  # conv_a: [dec, below + skip, 3, 3], conv_b: [dec, dec, 3, 3]
         # input columns of conv_a: the level below's output (its kept channels), then the skip
@@ -352,7 +415,9 @@ def transplant(source: MSNet, target: MSNet) -> list[str]:
         width = tp[0].out_channels
         mid = torch.argsort(norms(a, 0) * norms(b, 1), descending=True)[:width].sort().values
         readers = norms(source.kernel_heads[l].weight, 1).pow(2) + norms(source.blend_heads[l].weight, 1).pow(2)
-        if l > 0:
+        if l == 1 and source.lean0:
+            readers = readers + norms(source.decoder[0].up.weight, 1).pow(2)
+        elif l > 0:
             readers = readers + norms(source.decoder[l - 1][0].weight[:, : b.shape[0]], 1).pow(2)
         out = torch.argsort(norms(b, 0) * readers.sqrt(), descending=True)[:width].sort().values
         tp[0].weight.copy_(a[mid][:, cols])
@@ -380,4 +445,4 @@ def pad_to_multiple(x: torch.Tensor, m: int) -> torch.Tensor:
     return F.pad(x, (0, pw, 0, ph), mode="replicate")
 
 
-__all__ = ["DEFAULT", "MSNet", "add_shape_arguments", "from_arguments", "pad_to_multiple", "transplant"]
+__all__ = ["DEFAULT", "Lean0", "MSNet", "add_shape_arguments", "from_arguments", "pad_to_multiple", "transplant"]

@@ -270,6 +270,65 @@ def test_transplant_refuses_what_it_cannot_map():
         transplant(src, MSNet(28, **{**SMALL, "enc": (8, 6, 8, 8)}))
 
 
+def test_lean_level0_costs_what_it_computes_and_reaches_no_further_than_its_radius():
+    """MSNet(lean0=True): decoder level 0 as 1x1 convs of level 1 (at its resolution) and of
+    the skip, then one 3x3; the same outputs, its cost counted where each conv runs, and its
+    receptive radius bounding what an output pixel depends on."""
+    torch.manual_seed(6)
+    net = MSNet(28, **SMALL, lean0=True).eval()
+    pair = MSNet(28, **SMALL).eval()
+    assert [tuple(o.shape) for o in net(*_inputs(2, 32, 48))] == [tuple(o.shape) for o in pair(*_inputs(2, 32, 48))]
+    d0, d1, w0 = SMALL["dec"][0], SMALL["dec"][1], 2 * SMALL["ext_width"]
+    pair0 = (d1 + w0) * d0 * 9 + d0 * d0 * 9
+    lean0 = d1 * d0 / 4 + w0 * d0 + d0 * d0 * 9
+    assert net.flops_per_pixel() == pair.flops_per_pixel() - 2 * pair0 + 2 * lean0
+    assert net.receptive_radius() <= pair.receptive_radius()
+    assert "level 0 lean" in net.description()
+    h = w = 160
+    for y, x in ((64, 64), (79, 77)):
+        d, s, f = (t.requires_grad_(True) for t in _inputs(1, h, w, seed=y * x))
+        rec = reconstruct(net(d, s, f), net.levels, d, s, torch.rand(1, 3, h, w), specular_pyramid=net.specular_pyramid)
+        rec.total[0, :, y, x].sum().backward()
+        g = d.grad.abs().sum((0, 1)) + s.grad.abs().sum((0, 1)) + f.grad.abs().sum((0, 1))
+        ys, xs = torch.nonzero(g > 0, as_tuple=True)
+        assert 0 < max((ys - y).abs().max().item(), (xs - x).abs().max().item()) <= net.receptive_radius()
+
+
+@torch.no_grad()
+def test_transplant_into_a_lean_level0():
+    """From the production shape, a lean level 0 starts new and the rest is copied; from a
+    lean network, a narrower level 1 keeps the channels its lean level 0 reads."""
+    torch.manual_seed(7)
+    src = MSNet(28, **SMALL).eval()
+    dst = MSNet(28, **{**SMALL, "ext_blocks": 0}, lean0=True).eval()
+    notes = transplant(src, dst)
+    assert notes[-1] == "decoder level 0: lean, new", notes
+    assert torch.equal(dst.decoder[1][0].weight, src.decoder[1][0].weight)
+    assert torch.equal(dst.kernel_heads[1].weight, src.kernel_heads[1].weight)
+    lean = MSNet(28, **SMALL, lean0=True).eval()
+    used = [0, 2, 3, 5]
+    idle = [c for c in range(SMALL["dec"][1]) if c not in used]
+    for conv in (lean.decoder[1][0], lean.decoder[1][2]):
+        conv.weight[idle] = 0
+        conv.bias[idle] = 0
+    narrow = MSNet(28, **{**SMALL, "dec": (SMALL["dec"][0], 4, *SMALL["dec"][2:])}, lean0=True).eval()
+    assert transplant(lean, narrow) == ["decoder level 1: width 6 -> 4"]
+    x = _inputs(1, 32, 32, seed=8)
+    for a, b in zip(lean(*x), narrow(*x)):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="lean, the target's is not"):
+        transplant(lean, MSNet(28, **SMALL))
+
+
+def test_lean_level0_exports(tmp_path):
+    torch.manual_seed(9)
+    net = MSNet(28, **SMALL, lean0=True).eval()
+    path = tmp_path / "full" / "model.onnx"
+    export_onnx(net, path, "full")
+    assert verify_onnx(path, net) < 1e-4
+    assert int(read_metadata_v2(path)["mcdenoise.receptive_radius"]) == net.receptive_radius()
+
+
 def test_pad_to_multiple_replicates_the_edge():
     x = torch.arange(12.0).view(1, 1, 3, 4)
     p = pad_to_multiple(x, 4)

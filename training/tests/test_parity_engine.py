@@ -321,6 +321,15 @@ def case_v2(tmp_path_factory):
     export_v2(gain, root / "models-gain" / "full" / "model.onnx", "full")
     export_recon(gain, root / "models-gain-graph" / "full" / RECON_FILE, "full")
     export_v2(gain, root / "models-gain-graph" / "full" / "model.onnx", "full", compression="graph")
+    # And a network whose decoder level 0 is lean (MSNet(lean0=True)).
+    torch.manual_seed(18)
+    lean = MSNet(28, **NET2, lean0=True).eval()
+    with torch.no_grad():
+        for h in [*lean.kernel_heads, *lean.blend_heads]:
+            h.weight.mul_(HEAD_GAIN2)
+    nets["full-lean"] = lean
+    paths["full-lean"] = paths["full"]
+    export_v2(lean, root / "models-lean" / "full" / "model.onnx", "full")
     return dict(root=root, paths=paths, nets=nets, models=root / "models")
 
 
@@ -347,14 +356,15 @@ def test_beauty_inputs_match_the_training_side(request):
 
 @pytest.mark.parametrize("variant,compression", [("full", "engine"), ("nocov", "engine"), ("beauty", "engine"),
                                                  ("full", "graph"), ("full", "graph-recon"), ("full-log", "engine"),
-                                                 ("full-gain", "engine"), ("full-gain", "graph-recon")])
+                                                 ("full-gain", "engine"), ("full-gain", "graph-recon"),
+                                                 ("full-lean", "engine")])
 def test_run_matches_torch_v2(request, variant, compression):
     from mcdenoise_train.recon_ms import reconstruct_component
 
     exe = require_engine()
     case = request.getfixturevalue("case_v2")
     root, net = case["root"], case["nets"][variant]
-    served = variant.removesuffix("-log").removesuffix("-gain")  # full-log: the full variant of models-log
+    served = variant.split("-")[0]  # full-log: the full variant of models-log
     arrs = preprocess(exe, case["paths"][variant], root / f"run-{variant}.npz", "--variant", served)
     t = lambda k: torch.from_numpy(arrs[k])[None]
     m = net.size_multiple
@@ -375,7 +385,7 @@ def test_run_matches_torch_v2(request, variant, compression):
 
     out = root / f"out-{variant}-{compression}.exr"
     models = case["models"] if compression == "engine" else root / "models-graph"
-    models = root / "models-log" if variant == "full-log" else models
+    models = root / "models-log" if variant == "full-log" else root / "models-lean" if variant == "full-lean" else models
     if variant == "full-gain":
         models = root / ("models-gain-graph" if compression == "graph-recon" else "models-gain")
         # The gains change the result: without them it would differ.
@@ -385,4 +395,7 @@ def test_run_matches_torch_v2(request, variant, compression):
     where = "graph" if compression == "graph-recon" else "engine"
     engine(exe, "run", case["paths"][variant], "-o", out, "--models", models, "--reconstruction", where,
            "--layers", "diffuse,specular", "--tile-v2", TILE2, "--variant", served)
-    _compare_output(out, expect, (H2, W2), float_tol=1e-5)
+    # The lean network's random weights give one specular pixel a value of -2.5e-4 that is the
+    # difference of terms near one, where float32 leaves 4.5e-8 (4.5e-5 of the 1e-3 floor);
+    # the 99.9th percentile is 2.2e-6 (the other cases' 1e-6).
+    _compare_output(out, expect, (H2, W2), float_tol=1e-4 if variant == "full-lean" else 1e-5)

@@ -229,13 +229,15 @@ def test_training_steps_resume_and_export(tmp_path):
     assert net.config["ext_blocks"] == 0 and net.config["dec"] == [4, 6, 8, 8]
     with pytest.raises(SystemExit, match="--reshape needs --init"):
         train_ms.main(["--data", str(root), "--out", str(slim), "--steps", "2", *small, "--reshape"])
-    # --teacher adds the distillation term, logged beside the others.
+    # --teacher adds the distillation term, logged beside the others; here into a network
+    # whose decoder level 0 is lean (--lean0: new there, the rest from the checkpoint).
     taught = tmp_path / "taught"
     assert train_ms.main(["--data", str(root), "--out", str(taught), "--steps", "20", *small, "--val-every", "20",
-                          "--ext-blocks", "0", "--dec", "4,6,8,8", "--init", str(out / "best.pt"), "--reshape",
-                          "--teacher", str(out / "best.pt"), "--distill", "0.7"]) == 0
+                          "--ext-blocks", "0", "--dec", "4,6,8,8", "--lean0", "--init", str(out / "best.pt"),
+                          "--reshape", "--teacher", str(out / "best.pt"), "--distill", "0.7"]) == 0
     rows = [json.loads(l) for l in open(taught / "log.jsonl")]
     assert rows and all(np.isfinite(r["distill"]) and r["distill"] > 0 for r in rows)
+    assert load_msnet(taught / "best.pt")[0].lean0
     with pytest.raises(SystemExit, match="between 0 and 1"):
         train_ms.main(["--data", str(root), "--out", str(taught), "--steps", "2", *small,
                        "--teacher", str(out / "best.pt"), "--distill", "1.5"])
