@@ -149,6 +149,20 @@ pub fn preprocess(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect: Rect
     inputs
 }
 
+/// `buffer` resized to `len` values for a pass that writes every one of them. A buffer too
+/// small is replaced by a fresh zeroed allocation (`calloc`: pages the kernel hands out
+/// already zero) instead of being grown and filled: filling 106 MB of a 768×720 region's
+/// inputs on one thread faulted in every page there, where the preprocessing's parallel
+/// writers now fault them in on all the engine's threads.
+fn fit(buffer: &mut Vec<f32>, len: usize) {
+    if buffer.capacity() < len {
+        *buffer = Vec::new();
+        *buffer = vec![0.0; len];
+    } else {
+        buffer.resize(len, 0.0);
+    }
+}
+
 /// [`preprocess`] into the buffers of `inputs`, which are resized and every value of which
 /// is written: the engine reuses one set of buffers for all the regions of a frame, which
 /// would otherwise each map and fault in some 150 MB of fresh memory (at 4K, 28 regions).
@@ -157,9 +171,9 @@ pub fn preprocess_into(frame: &Frame, stats: &FrameStats, set: FeatureSet, rect:
     let n = rect.pixels();
     inputs.rect = rect;
     let Inputs { diffuse, specular, features, .. } = inputs;
-    diffuse.resize(COLOR_CHANNELS * n, 0.0);
-    specular.resize(COLOR_CHANNELS * n, 0.0);
-    features.resize(set.feature_channels() * n, 0.0);
+    fit(diffuse, COLOR_CHANNELS * n);
+    fit(specular, COLOR_CHANNELS * n);
+    fit(features, set.feature_channels() * n);
 
     let albedo = frame.rgb(Buffer::Albedo);
     // Diffuse color: d / (a + ε); variance scaled by 1 / (a + ε)². Negative colors and
