@@ -389,6 +389,8 @@ def transplant(source: MSNet, target: MSNet) -> list[str]:
 
     if source.lean0 and not target.lean0:
         raise ValueError("transplant only removes: the source's decoder level 0 is lean, the target's is not")
+    # The per-level heads that both networks have (the detail gains only where both have them).
+    heads_copied = ("kernel_heads", "blend_heads", "gain_heads")[: 3 if source.detail_gain and target.detail_gain else 2]
     for l in reversed(range(levels - 1)):
         if l == 0 and target.lean0:
             sp, tp = source.decoder[0], target.decoder[0]
@@ -402,7 +404,7 @@ def transplant(source: MSNet, target: MSNet) -> list[str]:
             cols = keep[1] if keep[1] is not None else torch.arange(sp.up.in_channels)
             tp.load_state_dict({k: v for k, v in sp.state_dict().items() if k != "up.weight"}, strict=False)
             tp.up.weight.copy_(sp.up.weight[:, cols])
-            for heads in ("kernel_heads", "blend_heads", "gain_heads")[: 3 if source.detail_gain and target.detail_gain else 2]:
+            for heads in heads_copied:
                 getattr(target, heads)[0].load_state_dict(getattr(source, heads)[0].state_dict())
             break
         sp, tp = source.decoder[l], target.decoder[l]
@@ -424,7 +426,7 @@ def transplant(source: MSNet, target: MSNet) -> list[str]:
         tp[0].bias.copy_(sp[0].bias[mid])
         tp[2].weight.copy_(b[out][:, mid])
         tp[2].bias.copy_(sp[2].bias[out])
-        for heads in ("kernel_heads", "blend_heads", "gain_heads")[: 3 if source.detail_gain and target.detail_gain else 2]:
+        for heads in heads_copied:
             sh, th = getattr(source, heads)[l], getattr(target, heads)[l]
             th.weight.copy_(sh.weight[:, out])
             th.bias.copy_(sh.bias)
