@@ -84,6 +84,8 @@ ALBEDO_PASSES = (0.7, 1.0)
 ALBEDO_ALPHA = 1.0
 ALBEDO_EPS = 1e-10
 ALBEDO_MAX_REFLECTANCE = 1.0
+# Radius of the window of the albedo variance's estimate for frames written without one.
+ALBEDO_ESTIMATE_RADIUS = 4
 
 
 def nl_means_pass(albedo: np.ndarray, variance: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -138,11 +140,31 @@ def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
     return np.where(exact[None], first, second)
 
 
+def _median_filter(x: np.ndarray, radius: int) -> np.ndarray:
+    """The median of each pixel's (2r + 1)² window, clamped to the edges (an odd count: the
+    middle sample, exact)."""
+    win = np.lib.stride_tricks.sliding_window_view(np.pad(x, radius, mode="edge"), (2 * radius + 1,) * 2)
+    win = win.reshape(*x.shape, -1)
+    mid = win.shape[-1] // 2
+    return np.partition(win, mid, axis=-1)[..., mid]
+
+
+def estimated_albedo_variance(albedo: np.ndarray) -> np.ndarray:
+    """The engine's albedo variance for a frame written without one (`estimated_variance` in
+    src/engine/albedo.rs): the median over the 9x9 window of the squared difference between
+    the albedo's luminance and its 3x3 median."""
+    a = np.asarray(albedo, np.float32)
+    lum = np.float32(LUMINANCE[0]) * a[0] + np.float32(LUMINANCE[1]) * a[1] + np.float32(LUMINANCE[2]) * a[2]
+    residual = np.square(lum - _median_filter(lum, 1))
+    return _median_filter(residual, ALBEDO_ESTIMATE_RADIUS).astype(np.float32)
+
+
 def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) -> tuple[np.ndarray, float, float]:
     """A frame's channels (name -> [H, W]) as a raw `[RAW_CHANNELS, H, W]` float32 array and
     its depth and covariance maxima, the auxiliary buffers rounded as the engine stores them
     (`stored_as_engine`) and the albedo prefiltered by its variance as the engine does by
-    default (`prefilter_albedo`; `albedo_prefilter=False`: as `--albedo-prefilter off`). Missing covariance
+    default (`prefilter_albedo`; `albedo_prefilter=False`: as `--albedo-prefilter off`), by
+    `estimated_albedo_variance` where the frame has no albedo variance. Missing covariance
     (frames of renderers without it) and missing variances are zeros."""
     ch = stored_as_engine(ch)
     h, w = next(iter(ch.values())).shape
@@ -160,7 +182,8 @@ def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) 
     far_pixels = out[DEPTH] > far
     out[DEPTH][far_pixels] = out[VAR["depth"]][far_pixels] = 0.0
     if albedo_prefilter:
-        a = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]])
+        given = FILE_NAMES["albedoVariance"] in ch
+        a = prefilter_albedo(out[ALBEDO], out[VAR["albedo"]] if given else estimated_albedo_variance(out[ALBEDO]))
         # Stored as the engine stores it: in half float where every sample fits.
         out[ALBEDO] = a.astype(np.float16).astype(np.float32) if np.abs(a).max(initial=0.0) <= HALF_MAX else a
     return out, depth_max, float(max(out[COV].max(), 0.0))
@@ -272,4 +295,5 @@ def targets(ref_diffuse: torch.Tensor, ref_specular: torch.Tensor, albedo: torch
     }
 
 
-__all__ = ["FILE_NAMES", "RAW", "RAW_INDEX", "as_beauty", "preprocess", "raw_from_channels", "targets"]
+__all__ = ["FILE_NAMES", "RAW", "RAW_INDEX", "as_beauty", "estimated_albedo_variance", "preprocess", "raw_from_channels",
+           "targets"]

@@ -24,6 +24,11 @@ Recipe:
   coarse scales too, where low sample counts leave blotches) and `--relmse W` × RelMSE of
   the final color (`relmse_huber`: the few pixels beside an emitter's edge that carry most
   of the metric weigh as in it).
+- **Variance dropout** (`--var-dropout P`): in a fraction of the patches every variance
+  is zeroed and the albedo is prefiltered by the variance estimated from it, as the engine
+  sees a frame written without variance buffers (Blender Cycles, most production
+  renderers): the same networks serve frames with and without variances. With a teacher,
+  the teacher sees each patch whole.
 - **Beauty** (`--beauty`): every patch as a frame with only a beauty, albedo and normal
   (`preprocess.as_beauty`: the sum of both components in the diffuse slot, no variances, no
   covariance, the depth dropped in half the patches); exported as the `beauty` variant.
@@ -82,28 +87,39 @@ from .exr import read_exr
 from .files import append_jsonl, atomic_path, open_append
 from .model import DenoiserNet, paper_config
 from .msnet import MSNet, add_shape_arguments, from_arguments, pad_to_multiple, transplant
-from .preprocess import ALBEDO, ALBEDO_PASSES, DIFFUSE, SPECULAR, VAR, as_beauty, preprocess, raw_from_channels, targets
+from .preprocess import (ALBEDO, ALBEDO_PASSES, DIFFUSE, EPS, RAW, SPECULAR, VAR, as_beauty, preprocess,
+                         raw_from_channels, targets)
 from .recon import reconstruct as _recon_v1
 from .recon_ms import reconstruct
 
 COV_FEATURES = [i for i in range(len(FEATURES_FULL)) if i not in NOCOV_INDICES]
+#: Where a run of `--var-dropout` keeps, after `RAW`, the albedo the engine gives the networks
+#: when the file has no variances (prefiltered by an estimated variance, `raw_from_channels`).
+ALBEDO_WITHOUT_VARIANCES = slice(len(RAW), len(RAW) + 3)
 
 
 # ----- data ---------------------------------------------------------------------------
 
 
-def load_raw(record: dict, cache: Path | None, albedo_prefilter: bool = True) -> dict[str, np.ndarray | float]:
+def load_raw(record: dict, cache: Path | None, albedo_prefilter: bool = True,
+             keep_albedo: bool = False) -> dict[str, np.ndarray | float]:
     """One record's raw noisy buffers (the albedo prefiltered as the engine does by default,
-    unless `albedo_prefilter` is false), reference diffuse/specular and frame maxima (cached
-    as .npz beside the data when `cache` is given)."""
+    unless `albedo_prefilter` is false; with `keep_albedo` followed by the albedo the engine
+    gives the networks when the file has no variances, `ALBEDO_WITHOUT_VARIANCES`), reference
+    diffuse/specular and frame maxima (cached as .npz beside the data when `cache` is given)."""
     if cache is not None:
         # The prefilter's parameters name the file: a cache of another prefilter is not read.
         prefilter = "-albedo-" + ("-".join(f"{k:g}" for k in ALBEDO_PASSES) if albedo_prefilter else "off")
+        prefilter += "-kept" if keep_albedo else ""
         p = cache / (Path(record["noisy"]).stem + prefilter + ".npz")
         if p.exists() and p.stat().st_mtime >= max(os.path.getmtime(record["noisy"]), os.path.getmtime(record["reference"])):
             with np.load(p) as z:
                 return {k: z[k] for k in z.files}
-    raw, dmax, cmax = raw_from_channels(read_exr(record["noisy"]), albedo_prefilter=albedo_prefilter)
+    channels = read_exr(record["noisy"])
+    raw, dmax, cmax = raw_from_channels(channels, albedo_prefilter=albedo_prefilter)
+    if keep_albedo:
+        bare = {k: v for k, v in channels.items() if "Variance" not in k}
+        raw = np.concatenate([raw, raw_from_channels(bare, albedo_prefilter=albedo_prefilter)[0][ALBEDO]])
     ref = read_exr(record["reference"])
     refs = np.stack([ref[f"{b}.{c}"] for b in ("diffuse", "specular") for c in "RGB"]).astype(np.float32)
     out = {"raw": raw, "ref": np.nan_to_num(refs), "maxima": np.array([dmax, cmax], np.float32)}
@@ -134,15 +150,16 @@ def tile_to_smallest(arrays: list[dict]) -> list[dict]:
 
 
 class FrameSet:
-    """Frames of one split as device tensors: raw [F, 20, H, W], ref [F, 6, H, W], maxima [F, 2].
+    """Frames of one split as device tensors: raw [F, 20, H, W] (23 with `keep_albedo`: the
+    albedo of the frame without variances after `RAW`), ref [F, 6, H, W], maxima [F, 2].
 
     `refresh()` adds the frames of scenes completed since (a data set still being rendered
     beside the training), cut to the set's size like the first ones."""
 
     def __init__(self, dirs: list[str], split: str, device: torch.device, limit: int | None = None,
-                 cache: bool = False, albedo_prefilter: bool = True):
+                 cache: bool = False, albedo_prefilter: bool = True, keep_albedo: bool = False):
         self.dirs, self.split, self.device, self.limit, self.cache = dirs, split, device, limit, cache
-        self.albedo_prefilter = albedo_prefilter
+        self.albedo_prefilter, self.keep_albedo = albedo_prefilter, keep_albedo
         self.loaded: set[str] = set()  # noisy frame paths
         self.names, self.spp, self.scenes = [], [], []
         self.raw = self.ref = self.maxima = None
@@ -161,7 +178,7 @@ class FrameSet:
 
         with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
             arrays = list(pool.map(lambda rd: load_raw(rd[0], rd[1] / "raw-cache" if self.cache else None,
-                                                    self.albedo_prefilter), recs))
+                                                    self.albedo_prefilter, self.keep_albedo), recs))
         for (r, _), a in zip(recs, arrays):
             a["meta"] = (Path(r["noisy"]).stem, int(r.get("spp", 0)), str(r.get("scene", "")))
             self.loaded.add(r["noisy"])
@@ -212,7 +229,7 @@ def augment(raw: torch.Tensor, ref: torch.Tensor, g: torch.Generator, a: argpars
     # one channel each): one gather along the channel axis.
     perm = torch.stack([torch.randperm(3, generator=g) for _ in range(n)])  # [n, 3]
     idx = torch.arange(raw.shape[1]).repeat(n, 1)
-    for base in (DIFFUSE.start, SPECULAR.start, ALBEDO.start):
+    for base in (DIFFUSE.start, SPECULAR.start, ALBEDO.start) + ((ALBEDO_WITHOUT_VARIANCES.start,) if raw.shape[1] > len(RAW) else ()):
         idx[:, base:base + 3] = base + perm
     ref_idx = torch.cat([perm, 3 + perm], 1)
     raw = torch.gather(raw, 1, idx.to(dev)[:, :, None, None].expand_as(raw))
@@ -274,15 +291,36 @@ def crops(fs: FrameSet, n: int, patch: int, g: torch.Generator):
     return raw.contiguous(), ref.contiguous(), fs.maxima[f.to(dev)]
 
 
-def batch_inputs(raw, ref, maxima, cov_dropout: float, g: torch.Generator, crop: int | None = None):
+def without_variances(raw: torch.Tensor) -> torch.Tensor:
+    """Raw frames `[N, 23, H, W]` (with `ALBEDO_WITHOUT_VARIANCES`) as the engine sees them
+    written without any variance buffer: `[N, 20, H, W]`, every variance 0 and the albedo
+    prefiltered by the variance the engine estimates from it."""
+    out = raw[:, :len(RAW)].clone()
+    out[:, ALBEDO] = raw[:, ALBEDO_WITHOUT_VARIANCES]
+    out[:, VAR["diffuse"]:VAR["covariance"] + 1] = 0
+    return out
+
+
+def batch_inputs(raw, ref, maxima, cov_dropout: float, g: torch.Generator, crop: int | None = None,
+                 var_dropout: float = 0.0):
     """Preprocessed network inputs and targets of raw patches (covariance zeroed in a
-    `cov_dropout` fraction), cropped to `crop` pixels."""
+    `cov_dropout` fraction; with `var_dropout`, raw patches of 23 channels seen
+    `without_variances` in that fraction and the inputs of the whole patches kept as
+    `teacher_*`), cropped to `crop` pixels."""
+    whole = None
+    if var_dropout > 0:
+        drop = (torch.rand(raw.shape[0], generator=g) < var_dropout).to(raw.device).view(-1, 1, 1, 1)
+        whole = raw[:, :len(RAW)]
+        raw = torch.where(drop, without_variances(raw), whole)
     inp = preprocess(raw, maxima[:, 0], maxima[:, 1], "full")
     tgt = targets(ref[:, 0:3], ref[:, 3:6], inp["albedo"])
+    taught = {} if whole is None else preprocess(whole, maxima[:, 0], maxima[:, 1], "full")
     if cov_dropout > 0:
         keep = (torch.rand(raw.shape[0], generator=g) >= cov_dropout).to(raw.device, raw.dtype)
-        inp["features"][:, COV_FEATURES] *= keep.view(-1, 1, 1, 1)
-    out = {**inp, **tgt}
+        for t in (inp, taught):
+            if t:
+                t["features"][:, COV_FEATURES] *= keep.view(-1, 1, 1, 1)
+    out = {**inp, **tgt, **{f"teacher_{k}": v for k, v in taught.items()}}
     if crop is not None:
         out = {k: v[..., :crop, :crop] for k, v in out.items()}
     return out
@@ -344,9 +382,14 @@ def blend_excess(out: list[torch.Tensor], levels: int, bound: float) -> torch.Te
 @torch.no_grad()
 def distill_batch(teacher, b: dict[str, torch.Tensor], autocast: bool) -> dict[str, torch.Tensor]:
     """The batch with the teacher's output on it as the targets (knowledge distillation): its
-    components in their preprocessed domains and its final color."""
-    t = forward(teacher, b, autocast)
-    return {**b, "diffuse_target": t.diffuse_pre, "specular_target": t.specular_pre, "reference": t.total}
+    components in their preprocessed domains and its final color; the teacher sees the
+    batch's `teacher_*` inputs where there are (`batch_inputs`), the batch itself elsewhere."""
+    whole = {k[len("teacher_"):]: v for k, v in b.items() if k.startswith("teacher_")}
+    t = forward(teacher, whole or b, autocast)
+    # With inputs of its own (`--var-dropout`) the teacher's diffuse is demodulated by the
+    # student's albedo, as the reference's is (`targets`).
+    diffuse = t.diffuse / (b["albedo"] + EPS) if whole else t.diffuse_pre
+    return {**b, "diffuse_target": diffuse, "specular_target": t.specular_pre, "reference": t.total}
 
 
 def step_loss(net, out_b: list[torch.Tensor], rec, b: dict[str, torch.Tensor], a: argparse.Namespace,
@@ -385,11 +428,13 @@ def denoise_whole(net, raw: torch.Tensor, maxima: torch.Tensor, zero_cov: bool =
     return rec.total[..., :h, :w]
 
 
-def validate(net: MSNet, val: FrameSet, zero_cov: bool = False, beauty: bool = False) -> dict[str, float]:
+def validate(net: MSNet, val: FrameSet, zero_cov: bool = False, beauty: bool = False,
+             no_variances: bool = False) -> dict[str, float]:
     net.eval()
     rel, dssim, inp = [], [], []
     for i in range(len(val)):
-        raw = as_beauty(val.raw[i:i + 1]) if beauty else val.raw[i:i + 1]
+        raw = val.raw[i:i + 1]
+        raw = as_beauty(raw) if beauty else without_variances(raw) if no_variances else raw[:, :len(RAW)]
         out = denoise_whole(net, raw, val.maxima[i:i + 1], zero_cov)
         ref = val.ref[i:i + 1, 0:3] + val.ref[i:i + 1, 3:6]
         noisy = val.raw[i:i + 1, DIFFUSE] + val.raw[i:i + 1, SPECULAR]
@@ -405,19 +450,26 @@ def validate(net: MSNet, val: FrameSet, zero_cov: bool = False, beauty: bool = F
 
 
 def scored(net, val: FrameSet, a) -> dict:
-    """The validation row of `net`: its scores, and those without covariance (`nocov`)."""
+    """The validation row of `net`: its scores, those without covariance (`nocov`) and, for
+    a run of `--var-dropout`, those without any variance or covariance (`novar`)."""
     v = validate(net, val, beauty=a.beauty)
     if not a.beauty:
         v["nocov"] = validate(net, val, zero_cov=True)
+    if a.var_dropout > 0:
+        # A frame without variances usually has no covariance either (Cycles).
+        v["novar"] = validate(net, val, zero_cov=True, no_variances=True)
     return v
 
 
 def selection_score(v: dict, select: str) -> float:
     """The score checkpoints are chosen by: the network's with covariance (`full`), or the
     mean of that and its score without (`both`; frames from most renderers carry no
-    covariance and are served by `nocov`)."""
+    covariance and are served by `nocov`), or the mean of those and the score without any
+    variance (`all`, for a run of `--var-dropout`)."""
     if select == "both" and "nocov" in v:
         return 0.5 * (v["score"] + v["nocov"]["score"])
+    if select == "all" and "nocov" in v and "novar" in v:
+        return (v["score"] + v["nocov"]["score"] + v["novar"]["score"]) / 3
     return v["score"]
 
 
@@ -498,9 +550,13 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--exposure", type=float, default=2.0, help="exposure augmentation range in stops (±)")
     p.add_argument("--fireflies", type=float, default=0.25, help="fraction of patches with injected fireflies")
     p.add_argument("--cov-dropout", type=float, default=0.3, help="fraction of patches with covariance zeroed")
-    p.add_argument("--select", choices=("full", "both"), default="full",
-                   help="the validation score best.pt is chosen by: with covariance (`full`), or the mean of "
-                        "that and the score without it (`both`: `full` and `nocov` alike)")
+    p.add_argument("--var-dropout", type=float, default=0.0,
+                   help="fraction of patches seen as a frame without variance buffers: every variance zeroed, "
+                        "the albedo not prefiltered (as the engine sees such a frame)")
+    p.add_argument("--select", choices=("full", "both", "all"), default="full",
+                   help="the validation score best.pt is chosen by: with covariance (`full`), the mean of "
+                        "that and the score without it (`both`: `full` and `nocov` alike), or the mean of those "
+                        "and the score without any variance (`all`, with --var-dropout)")
     p.add_argument("--l1", type=float, default=1.0, help="weight of L1 on log(1 + color)")
     p.add_argument("--ssim", type=float, default=0.0, help="weight of DSSIM of the final color")
     p.add_argument("--msssim", type=float, default=0.0,
@@ -608,6 +664,13 @@ def main(argv=None) -> int:
         raise SystemExit(f"--ema {a.ema}: the decay per step is at least 0 and below 1")
     if not 0.0 <= a.distill <= 1.0:
         raise SystemExit(f"--distill {a.distill}: the teacher's share of the loss is between 0 and 1")
+    if not 0.0 <= a.var_dropout <= 1.0:
+        raise SystemExit(f"--var-dropout {a.var_dropout}: a fraction of the patches, between 0 and 1")
+    if a.var_dropout > 0 and (a.beauty or a.arch != "msnet"):
+        raise SystemExit("--var-dropout trains the production network with and without variances (--arch msnet, "
+                         "not --beauty, which sees no variances at all)")
+    if a.select == "all" and not a.var_dropout:
+        raise SystemExit("--select all scores frames without variances too: it needs --var-dropout")
     torch.set_num_threads(max(1, a.threads))
     torch.set_flush_denormal(True)
     dev = torch.device(a.device)
@@ -620,8 +683,9 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_load = time.time()
     prefilter = a.albedo_prefilter == "on"
-    train = FrameSet(a.data, "train", dev, cache=a.raw_cache, albedo_prefilter=prefilter)
-    val = FrameSet(a.data, "val", dev, a.val_frames, cache=a.raw_cache, albedo_prefilter=prefilter)
+    keep = a.var_dropout > 0  # the albedo of each frame without variances, for the patches seen so
+    train = FrameSet(a.data, "train", dev, cache=a.raw_cache, albedo_prefilter=prefilter, keep_albedo=keep)
+    val = FrameSet(a.data, "val", dev, a.val_frames, cache=a.raw_cache, albedo_prefilter=prefilter, keep_albedo=keep)
     if not len(train):
         raise SystemExit(f"{a.data}: no training frames")
     if min(train.raw.shape[-2:]) < a.patch + 1:
@@ -779,7 +843,7 @@ def main(argv=None) -> int:
         raw, ref = augment(raw, ref, g, a)
         if a.beauty:
             raw, ref = as_beauty(raw, ref, keep_depth=torch.rand(a.batch, generator=g) < 0.5)
-        b = batch_inputs(raw, ref, maxima, a.cov_dropout, g, crop=a.patch)
+        b = batch_inputs(raw, ref, maxima, a.cov_dropout, g, crop=a.patch, var_dropout=a.var_dropout)
         b = {k: v.contiguous(memory_format=torch.channels_last) for k, v in b.items()}
         out_b = outputs(net, b, autocast)
         rec = reconstructed(net, out_b, b)

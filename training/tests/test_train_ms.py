@@ -15,8 +15,8 @@ from mcdenoise_train.checkpoint import load_msnet, load_state, save_msnet, save_
 from mcdenoise_train.export_ms import read_metadata_v2
 from mcdenoise_train.exr import read_exr, write_exr
 from mcdenoise_train.frames import synthetic_frame
-from mcdenoise_train.preprocess import (ALBEDO, ALBEDO_PASSES, DIFFUSE, RAW, SPECULAR, VAR, nl_means_pass,
-                                        prefilter_albedo, preprocess, raw_from_channels, targets)
+from mcdenoise_train.preprocess import (ALBEDO, ALBEDO_PASSES, DIFFUSE, RAW, SPECULAR, VAR, estimated_albedo_variance,
+                                        nl_means_pass, prefilter_albedo, preprocess, raw_from_channels, targets)
 
 from test_train import make_dataset, needs_engine
 
@@ -74,6 +74,35 @@ def test_the_albedo_prefilter_is_the_engines(tmp_path):
     r, _, _ = raw_from_channels(read_exr(tmp_path / "r.exr"))
     tg = targets(torch.from_numpy(r[DIFFUSE])[None], torch.from_numpy(r[SPECULAR])[None], t["albedo"])
     np.testing.assert_allclose(tg["diffuse_target"][0].numpy(), engine["diffuse_target"], rtol=1e-5, atol=1e-6)
+
+
+@needs_engine
+def test_a_frame_without_albedo_variance_is_prefiltered_by_the_engines_estimate(tmp_path):
+    """Written without variances, a frame's albedo is prefiltered by the variance estimated
+    from it, on both sides alike; the estimate is what its method says."""
+    ch = synthetic_frame(40, 36, seed=7, covariance=False)
+    bare = {k: v for k, v in ch.items() if "Variance" not in k}
+    noise = np.random.default_rng(0).uniform(-0.05, 0.05, (3, 40, 36)).astype(np.float32)
+    for i, c in enumerate("RGB"):  # the synthetic albedo is smooth: noisy as a defocused one is
+        bare[f"albedo.{c}"] = bare[f"albedo.{c}"] + noise[i]
+    write_exr(tmp_path / "f.exr", bare)
+    subprocess.run([BIN, "preprocess", str(tmp_path / "f.exr"), "--fireflies", "off", "-o", str(tmp_path / "f.npz")],
+                   check=True, capture_output=True)
+    engine = np.load(tmp_path / "f.npz")
+    raw = raw_from_channels(read_exr(tmp_path / "f.exr"))[0]
+    np.testing.assert_allclose(raw[ALBEDO], engine["albedo"], rtol=1e-5, atol=1e-6, err_msg="albedo")
+    plain = raw_from_channels(read_exr(tmp_path / "f.exr"), albedo_prefilter=False)[0]
+    assert np.abs(raw[ALBEDO] - plain[ALBEDO]).max() > 1e-3, "prefiltered without a variance in the file"
+    # The method, written out for one pixel inside the frame.
+    a = plain[ALBEDO]
+    lum = np.float32(0.2126) * a[0] + np.float32(0.7152) * a[1] + np.float32(0.0722) * a[2]
+    y, x = 17, 20
+    res = lambda yy, xx: (lum[yy, xx] - np.median(lum[yy - 1:yy + 2, xx - 1:xx + 2])) ** 2
+    expect = np.median([res(yy, xx) for yy in range(y - 4, y + 5) for xx in range(x - 4, x + 5)])
+    assert estimated_albedo_variance(a)[y, x] == pytest.approx(expect, rel=1e-6)
+    # A given albedo variance is used as it is, zeros too (an exact albedo).
+    zeros = dict(bare, **{"albedoVariance.Z": np.zeros_like(bare["albedo.R"])})
+    np.testing.assert_allclose(raw_from_channels(zeros)[0][ALBEDO], plain[ALBEDO], atol=1e-3)
 
 
 @pytest.mark.parametrize("k", ALBEDO_PASSES)
@@ -303,6 +332,44 @@ def test_distillation_targets_are_the_teachers_output():
     assert float(loss.detach()) > 1e-3
 
 
+def test_variance_dropout_shows_patches_as_frames_without_variances_and_the_teacher_them_whole():
+    """--var-dropout: a dropped patch's inputs are those of the frame without any variance
+    buffer (variances 0, the albedo prefiltered by its estimated variance); the teacher sees
+    every patch whole, and its diffuse target is demodulated by the student's albedo, so
+    that the student's final color is held to the teacher's."""
+    raw, ref = _raw_batch(n=2, size=33)
+    written = raw[:, ALBEDO] * 1.5 + 0.01  # stands for the albedo of the frame without variances
+    kept = torch.cat([raw, written], 1)
+    assert kept.shape[1] == len(RAW) + 3 and train_ms.ALBEDO_WITHOUT_VARIANCES == slice(len(RAW), len(RAW) + 3)
+    bare = train_ms.without_variances(kept)
+    assert bare.shape[1] == len(RAW) and torch.equal(bare[:, ALBEDO], written)
+    assert not bare[:, VAR["diffuse"]:VAR["covariance"] + 1].any() and torch.equal(bare[:, :6], raw[:, :6])
+    maxima = torch.ones(2, 2)
+    g = lambda: torch.Generator().manual_seed(0)
+    b = train_ms.batch_inputs(kept, ref, maxima, 0.0, g(), crop=32, var_dropout=1.0)
+    student = preprocess(bare, maxima[:, 0], maxima[:, 1], "full")
+    whole = preprocess(raw, maxima[:, 0], maxima[:, 1], "full")
+    for k in ("diffuse", "specular", "features", "albedo"):
+        assert torch.equal(b[k], student[k][..., :32, :32]) and torch.equal(b[f"teacher_{k}"], whole[k][..., :32, :32])
+    assert torch.equal(b["diffuse_target"], targets(ref[:, 0:3], ref[:, 3:6], written)["diffuse_target"][..., :32, :32])
+    # None dropped: the student's inputs are the whole patch's, and so are the teacher's.
+    b0 = train_ms.batch_inputs(kept, ref, maxima, 0.0, g(), crop=32, var_dropout=1e-9)
+    assert torch.equal(b0["features"], b0["teacher_features"]) and torch.equal(b0["albedo"], whole["albedo"][..., :32, :32])
+    # Without --var-dropout the batch is as before: no teacher inputs of its own.
+    assert not any(k.startswith("teacher_") for k in train_ms.batch_inputs(raw, ref, maxima, 0.0, g(), crop=32))
+
+    args = _args(ext_width=4, ext_blocks=1, enc="6,6,8,8", dec="6,6,8,8")
+    torch.manual_seed(0)
+    net = train_ms.from_arguments(args, 28)
+    taught = train_ms.distill_batch(net, b, autocast=False)
+    seen_whole = train_ms.forward(net, {k[len("teacher_"):]: v for k, v in b.items() if k.startswith("teacher_")},
+                                  autocast=False)
+    assert torch.allclose(taught["reference"], seen_whole.total)
+    # The diffuse target remodulated by the student's albedo is the teacher's diffuse.
+    assert torch.allclose(taught["diffuse_target"] * (b["albedo"] + train_ms.EPS), seen_whole.diffuse, rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(taught["reference"], train_ms.forward(net, b, autocast=False).total)
+
+
 def test_step_loss_mixes_the_teacher_in_before_the_blend_penalty():
     args = _args(ext_width=4, ext_blocks=1, enc="6,6,8,8", dec="6,6,8,8", ssim=0.2, msssim=0.0)
     torch.manual_seed(0)
@@ -325,6 +392,26 @@ def test_step_loss_mixes_the_teacher_in_before_the_blend_penalty():
     a2 = _args(**{**vars(a1), "distill": 0.25})
     loss, parts = train_ms.step_loss(net, out, rec, b, a2, teacher=net)
     assert float(loss) == pytest.approx(0.75 * float(reference) + 0.25 * parts["distill"] + 2.0 * excess, rel=1e-4)
+
+
+def test_a_run_with_variance_dropout_scores_frames_without_variances_and_selects_on_all(tmp_path):
+    root = make_dataset(tmp_path / "d", frames=3, size=48)
+    out = tmp_path / "run"
+    small = ["--data", str(root), "--out", str(out), "--ext-width", "4", "--enc", "6,6,8,8", "--dec", "6,6,8,8",
+             "--patch", "32", "--batch", "2", "--threads", "2", "--device", "cpu", "--val-every", "2"]
+    with pytest.raises(SystemExit, match="needs --var-dropout"):
+        train_ms.main([*small, "--steps", "2", "--select", "all"])
+    with pytest.raises(SystemExit, match="--var-dropout 1.5"):
+        train_ms.main([*small, "--steps", "2", "--var-dropout", "1.5"])
+    assert train_ms.main([*small, "--steps", "2", "--var-dropout", "0.5", "--select", "all"]) == 0
+    rows = [json.loads(l) for l in open(out / "val.jsonl")]
+    assert rows and all({"nocov", "novar"} <= set(r) for r in rows)
+    # Without variances the frames are denoised differently.
+    assert rows[-1]["novar"]["relmse"] != rows[-1]["nocov"]["relmse"]
+    v = {"score": -9.0, "nocov": {"score": -8.0}, "novar": {"score": -6.0}}
+    assert train_ms.selection_score(v, "all") == pytest.approx(-23.0 / 3)
+    state = load_state(out / "state.pt")
+    assert state["best"] == pytest.approx(min(train_ms.selection_score(r, "all") for r in rows), abs=1e-9)
 
 
 def test_paper_network_trains_and_exports_as_lin2020(tmp_path):

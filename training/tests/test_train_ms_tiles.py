@@ -77,5 +77,16 @@ def test_training_frames_have_the_albedo_the_engine_gives_the_networks(tmp_path)
     assert np.abs(on["raw"][ALBEDO] - off["raw"][ALBEDO]).max() > 1e-3
     assert sorted(p.name for p in cache.iterdir()) == ["a-albedo-0.7-1.npz", "a-albedo-off.npz"]
     assert np.array_equal(load_raw(rec, cache)["raw"], on["raw"]), "read back from its own cache file"
+    # With the albedo of the frame without variances kept after the raw channels
+    # (--var-dropout): prefiltered by its estimated variance; cached apart.
+    from mcdenoise_train.exr import read_exr
+    from mcdenoise_train.preprocess import raw_from_channels
+    kept = load_raw(rec, cache, keep_albedo=True)
+    bare = {k: v for k, v in read_exr(rec["noisy"]).items() if "Variance" not in k}
+    assert kept["raw"].shape[0] == 23 and np.array_equal(kept["raw"][:20], on["raw"])
+    np.testing.assert_array_equal(kept["raw"][20:], raw_from_channels(bare)[0][ALBEDO])
+    assert not np.array_equal(kept["raw"][20:], on["raw"][ALBEDO])
+    assert "a-albedo-0.7-1-kept.npz" in {p.name for p in cache.iterdir()}
+    assert np.array_equal(load_raw(rec, cache, keep_albedo=True)["raw"], kept["raw"])
     assert parse(["--data", "x", "--out", "y"]).albedo_prefilter == "on"
     assert parse(["--data", "x", "--out", "y", "--albedo-prefilter", "off"]).albedo_prefilter == "off"
