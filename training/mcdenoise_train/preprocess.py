@@ -151,12 +151,18 @@ def _median_filter(x: np.ndarray, radius: int) -> np.ndarray:
 
 def estimated_albedo_variance(albedo: np.ndarray) -> np.ndarray:
     """The engine's albedo variance for a frame written without one (`estimated_variance` in
-    src/engine/albedo.rs): the median over the 9x9 window of the squared difference between
-    the albedo's luminance and its 3x3 median."""
+    src/engine/albedo.rs): the squared difference between the albedo's luminance and its
+    3x3 median, its 3x3 median, then the median of that at the nine block centres (offsets
+    -3, 0, 3, clamped) that tile the 9x9 window around each pixel."""
     a = np.asarray(albedo, np.float32)
     lum = np.float32(LUMINANCE[0]) * a[0] + np.float32(LUMINANCE[1]) * a[1] + np.float32(LUMINANCE[2]) * a[2]
-    residual = np.square(lum - _median_filter(lum, 1))
-    return _median_filter(residual, ALBEDO_ESTIMATE_RADIUS).astype(np.float32)
+    blocks = _median_filter(np.square(lum - _median_filter(lum, 1)), 1)
+    h, w = blocks.shape
+    step = (2 * ALBEDO_ESTIMATE_RADIUS + 1) // 3
+    p = np.pad(blocks, step, mode="edge")
+    centres = np.stack([p[step + dy:step + dy + h, step + dx:step + dx + w]
+                        for dy in (-step, 0, step) for dx in (-step, 0, step)])
+    return np.partition(centres, 4, axis=0)[4].astype(np.float32)
 
 
 def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) -> tuple[np.ndarray, float, float]:

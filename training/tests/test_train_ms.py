@@ -90,7 +90,10 @@ def test_a_frame_without_albedo_variance_is_prefiltered_by_the_engines_estimate(
                    check=True, capture_output=True)
     engine = np.load(tmp_path / "f.npz")
     raw = raw_from_channels(read_exr(tmp_path / "f.exr"))[0]
-    np.testing.assert_allclose(raw[ALBEDO], engine["albedo"], rtol=1e-5, atol=1e-6, err_msg="albedo")
+    # Both keep the result in half float: a float32 sum in another order may round a sample
+    # to the neighbouring half (one of 4,320 here), never further.
+    np.testing.assert_allclose(raw[ALBEDO], engine["albedo"], rtol=2.0 ** -10, atol=1e-6, err_msg="albedo")
+    assert np.mean(raw[ALBEDO] != engine["albedo"]) < 0.005
     plain = raw_from_channels(read_exr(tmp_path / "f.exr"), albedo_prefilter=False)[0]
     assert np.abs(raw[ALBEDO] - plain[ALBEDO]).max() > 1e-3, "prefiltered without a variance in the file"
     # The method, written out for one pixel inside the frame.
@@ -98,7 +101,8 @@ def test_a_frame_without_albedo_variance_is_prefiltered_by_the_engines_estimate(
     lum = np.float32(0.2126) * a[0] + np.float32(0.7152) * a[1] + np.float32(0.0722) * a[2]
     y, x = 17, 20
     res = lambda yy, xx: (lum[yy, xx] - np.median(lum[yy - 1:yy + 2, xx - 1:xx + 2])) ** 2
-    expect = np.median([res(yy, xx) for yy in range(y - 4, y + 5) for xx in range(x - 4, x + 5)])
+    block = lambda yy, xx: np.median([res(yy + i, xx + j) for i in (-1, 0, 1) for j in (-1, 0, 1)])
+    expect = np.median([block(y + i, x + j) for i in (-3, 0, 3) for j in (-3, 0, 3)])
     assert estimated_albedo_variance(a)[y, x] == pytest.approx(expect, rel=1e-6)
     # A given albedo variance is used as it is, zeros too (an exact albedo).
     zeros = dict(bare, **{"albedoVariance.Z": np.zeros_like(bare["albedo.R"])})
