@@ -552,7 +552,7 @@ def parse(argv=None) -> argparse.Namespace:
     p.add_argument("--cov-dropout", type=float, default=0.3, help="fraction of patches with covariance zeroed")
     p.add_argument("--var-dropout", type=float, default=0.0,
                    help="fraction of patches seen as a frame without variance buffers: every variance zeroed, "
-                        "the albedo not prefiltered (as the engine sees such a frame)")
+                        "the albedo prefiltered by the variance estimated from it (as the engine sees such a frame)")
     p.add_argument("--select", choices=("full", "both", "all"), default="full",
                    help="the validation score best.pt is chosen by: with covariance (`full`), the mean of "
                         "that and the score without it (`both`: `full` and `nocov` alike), or the mean of those "
