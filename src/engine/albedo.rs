@@ -191,7 +191,8 @@ pub fn estimated_variance(albedo: [PlaneRef<'_>; 3], w: usize, h: usize) -> Vec<
     let mut blocks = vec![0f32; w * h];
     blocks.par_chunks_mut(w).enumerate().for_each(|(y, row)| median_row(&residual, 1, y, row));
     let mut out = residual;
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| median_row(&blocks, 3, y, row));
+    let block = (2 * ESTIMATE_RADIUS as isize + 1) / 3;
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| median_row(&blocks, block, y, row));
     out
 }
 

@@ -140,13 +140,14 @@ def prefilter_albedo(albedo: np.ndarray, variance: np.ndarray) -> np.ndarray:
     return np.where(exact[None], first, second)
 
 
-def _median_filter(x: np.ndarray, radius: int) -> np.ndarray:
-    """The median of each pixel's (2r + 1)² window, clamped to the edges (an odd count: the
-    middle sample, exact)."""
-    win = np.lib.stride_tricks.sliding_window_view(np.pad(x, radius, mode="edge"), (2 * radius + 1,) * 2)
-    win = win.reshape(*x.shape, -1)
-    mid = win.shape[-1] // 2
-    return np.partition(win, mid, axis=-1)[..., mid]
+def _median3(x: np.ndarray, step: int) -> np.ndarray:
+    """The median of the 3x3 samples `step` apart around each pixel, clamped to the edges
+    (`median_row` in src/engine/albedo.rs; nine samples: the middle one, exact)."""
+    h, w = x.shape
+    p = np.pad(x, step, mode="edge")
+    samples = np.stack([p[step + dy:step + dy + h, step + dx:step + dx + w]
+                        for dy in (-step, 0, step) for dx in (-step, 0, step)])
+    return np.partition(samples, 4, axis=0)[4]
 
 
 def estimated_albedo_variance(albedo: np.ndarray) -> np.ndarray:
@@ -156,13 +157,8 @@ def estimated_albedo_variance(albedo: np.ndarray) -> np.ndarray:
     -3, 0, 3, clamped) that tile the 9x9 window around each pixel."""
     a = np.asarray(albedo, np.float32)
     lum = np.float32(LUMINANCE[0]) * a[0] + np.float32(LUMINANCE[1]) * a[1] + np.float32(LUMINANCE[2]) * a[2]
-    blocks = _median_filter(np.square(lum - _median_filter(lum, 1)), 1)
-    h, w = blocks.shape
-    step = (2 * ALBEDO_ESTIMATE_RADIUS + 1) // 3
-    p = np.pad(blocks, step, mode="edge")
-    centres = np.stack([p[step + dy:step + dy + h, step + dx:step + dx + w]
-                        for dy in (-step, 0, step) for dx in (-step, 0, step)])
-    return np.partition(centres, 4, axis=0)[4].astype(np.float32)
+    blocks = _median3(np.square(lum - _median3(lum, 1)), 1)
+    return _median3(blocks, (2 * ALBEDO_ESTIMATE_RADIUS + 1) // 3).astype(np.float32)
 
 
 def raw_from_channels(ch: dict[str, np.ndarray], albedo_prefilter: bool = True) -> tuple[np.ndarray, float, float]:
