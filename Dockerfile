@@ -8,7 +8,7 @@
 #   docker run --gpus all -p 8080:8080 -p 50051:50051 mcdenoise:gpu
 #
 # Stages: the ONNX Runtime library from the pinned wheels (scripts/install-ort: the CPU
-# build, or for the GPU image the CUDA build with the CUDA 13 runtime, cuBLAS, cuRAND and
+# build with OpenVINO's execution provider plugin, or for the GPU image the CUDA build with the CUDA 13 runtime, cuBLAS, cuRAND and
 # cuDNN 9 from NVIDIA's wheels), the release binary (scripts/build-release; CI runs the
 # same script through `make test`), and a small runtime image with a non-root user, in two
 # flavours: `gpu`, and `cpu`, the last stage and so the default. The GPU image needs only
@@ -105,3 +105,6 @@ ENV LD_LIBRARY_PATH=/opt/mcdenoise/lib \
 # --- CPU image (the default) -------------------------------------------------------------
 FROM runtime AS cpu
 COPY --from=ort /out/lib/libonnxruntime.so.1.31.1 /opt/mcdenoise/lib/
+# OpenVINO's execution provider plugin and runtime (91 MB): `--device auto` runs the
+# networks through it in bfloat16 on CPUs with AMX (docs/api.md, `--device`).
+COPY --from=ort /out/lib/openvino/ /opt/mcdenoise/lib/openvino/

@@ -1,6 +1,6 @@
 //! Speed benchmark (`make bench`, or `cargo bench --bench speed -- [--models DIR] [--threads N]
 //! [--tile N] [--tile-v2 N] [--runs N] [--out FILE] [--work DIR] [--quick] [--engine-only]
-//! [--int8-models DIR]`). Every figure is measured in the same run
+//! [--int8-models DIR] [--device D]`). Every figure is measured in the same run
 //! so that the ratios between them hold even on a machine with other load:
 //!
 //! 1. the machine's ceiling: FP32 GEMM through ONNX Runtime's MatMul (benches/matmul.onnx)
@@ -50,6 +50,8 @@ struct Args {
     engine_only: bool,
     /// Int8 copies of the models, measured against FP32.
     int8_models: Option<PathBuf>,
+    /// `--device` of the engine, the daemon and `mcdenoise run` (default `auto`, theirs).
+    device: String,
 }
 
 fn parse_args() -> Result<Args> {
@@ -64,6 +66,7 @@ fn parse_args() -> Result<Args> {
         quick: false,
         engine_only: false,
         int8_models: None,
+        device: "auto".to_string(),
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -80,6 +83,7 @@ fn parse_args() -> Result<Args> {
             "--quick" => a.quick = true,
             "--engine-only" => a.engine_only = true,
             "--int8-models" => a.int8_models = Some(value()?.into()),
+            "--device" => a.device = value()?,
             other => bail!("unknown argument `{other}`"),
         }
     }
@@ -113,6 +117,7 @@ fn engine(a: &Args, models: &Path) -> Result<Engine> {
     config.threads = a.threads;
     config.tile = a.tile;
     config.tile_v2 = a.tile_v2;
+    config.device = a.device.parse().map_err(anyhow::Error::msg)?;
     let mut e = Engine::load(&config)?;
     e.warm_up()?;
     Ok(e)
@@ -233,6 +238,7 @@ fn engine_section(a: &Args, e: &mut Engine, exr: &[u8], w: usize, h: usize, gemm
     );
     Ok(json!({
         "width": w, "height": h, "variant": variant, "tile": a.tile, "tile_v2": a.tile_v2, "threads": a.threads, "runs": a.runs,
+        "device": e.device().to_string(),
         "flops_per_frame": flops,
         "ort_alone_s": floor_s,
         "ort_alone_gflops": flops / floor_s / 1e9,
@@ -350,6 +356,8 @@ fn daemon_section(a: &Args, e: &mut Engine) -> Result<Value> {
         &tile_v2,
         "--models",
         &models,
+        "--device",
+        &a.device,
         "--log",
         "warn",
         "--data-dir",
@@ -412,7 +420,7 @@ fn memory_section(a: &Args, dir: &Path) -> Result<Value> {
             .arg(&output)
             .args(["--models", &a.models.display().to_string()])
             .args(["--threads", &a.threads.to_string(), "--tile", &a.tile.to_string()])
-            .args(["--tile-v2", &a.tile_v2.to_string()])
+            .args(["--tile-v2", &a.tile_v2.to_string(), "--device", &a.device])
             .output()
             .context("cannot run /usr/bin/time")?;
         if !res.status.success() {
@@ -484,7 +492,7 @@ fn main() -> Result<()> {
 
     let report = json!({
         "machine": {
-            "cpu": cpu_model(), "threads": a.threads, "ort_version": runtime::ORT_VERSION,
+            "cpu": cpu_model(), "threads": a.threads, "ort_version": runtime::ORT_VERSION, "device": a.device,
             "loadavg_start": load_start, "loadavg_end": loadavg(),
         },
         "models": a.models,

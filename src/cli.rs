@@ -88,9 +88,10 @@ pub struct RunArgs {
     #[arg(long, env = "MCDENOISE_TILE_V2", default_value_t = engine::DEFAULT_TILE_V2)]
     pub tile_v2: usize,
     /// Largest region (a tile with its halo) the networks run on, in pixels: larger frames
-    /// are cut into more, smaller tiles, which bounds the working memory.
-    #[arg(long, env = "MCDENOISE_REGION_PIXELS", default_value_t = engine::DEFAULT_REGION_PIXELS)]
-    pub region_pixels: usize,
+    /// are cut into more, smaller tiles, which bounds the working memory. Default: 688128
+    /// (896 × 768), 576000 (768 × 750) with `--device openvino`.
+    #[arg(long, env = "MCDENOISE_REGION_PIXELS")]
+    pub region_pixels: Option<usize>,
     /// Threads for inference and processing (default: all cores).
     #[arg(long, env = "MCDENOISE_THREADS")]
     pub threads: Option<usize>,
@@ -117,9 +118,12 @@ pub struct RunArgs {
     /// Path of libonnxruntime.so (default: searched for; see `scripts/setup`).
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_library: Option<PathBuf>,
-    /// Where the networks run: `cpu`, `cuda` or `cuda:N` (ONNX Runtime's CUDA execution
-    /// provider, from the GPU build of ONNX Runtime), or `auto` (CUDA where available).
-    #[arg(long, env = "MCDENOISE_DEVICE", default_value = "cpu", value_parser = parse_device)]
+    /// Where the networks run: `cpu` (ONNX Runtime's CPU provider), `openvino` (the CPU
+    /// through OpenVINO's provider plugin, in bfloat16 where the CPU has it), `cuda` or
+    /// `cuda:N` (ONNX Runtime's CUDA execution provider, from the GPU build of ONNX
+    /// Runtime), or `auto`: CUDA where available, else `openvino` on a CPU with AMX, else
+    /// `cpu`.
+    #[arg(long, env = "MCDENOISE_DEVICE", default_value = "auto", value_parser = parse_device)]
     pub device: engine::Device,
     /// Where contract-v2 kernels are applied: `engine` (the engine's own code, on the CPU),
     /// `graph` (inside the network's graph, `model-recon.onnx`, on the device the networks

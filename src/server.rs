@@ -438,6 +438,10 @@ impl Denoiser for Slowed {
         self.inner.models()
     }
 
+    fn device(&self) -> Option<crate::engine::Device> {
+        self.inner.device()
+    }
+
     fn denoise(
         &mut self,
         frame: &Frame,

@@ -159,11 +159,13 @@ fn cuda_without_the_gpu_build_of_onnx_runtime_is_a_clear_error() {
         assert!(err.contains(part), "{part}: {err}");
     }
     assert!(!err.contains("panicked") && !out.exists(), "{err}");
-    // `auto` falls back to the CPU and the report says where it ran.
+    // `auto` falls back to the CPU (through OpenVINO on a CPU with AMX) and the report
+    // says where it ran.
     let res = run("auto");
     assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
     let report: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap();
-    assert_eq!(report["device"], "cpu");
+    let cpu = if mcdenoise::engine::device::cpu_has_amx_bf16() { "openvino" } else { "cpu" };
+    assert_eq!(report["device"], cpu);
     let res = run("gpu");
     assert_eq!(res.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&res.stderr).contains("unknown device `gpu`"));
@@ -177,6 +179,54 @@ fn cuda_without_the_gpu_build_of_onnx_runtime_is_a_clear_error() {
     assert_eq!(res.status.code(), Some(1));
     let err = String::from_utf8_lossy(&res.stderr);
     assert!(err.contains("--device cuda:0: the ONNX Runtime library") && err.contains("onnxruntime-gpu"), "{err}");
+}
+
+#[test]
+fn openvino_runs_the_shipped_network_as_the_cpu_provider_does() {
+    // `scripts/setup` installs OpenVINO's plugin beside the library; on a CPU with AMX it
+    // computes in bfloat16, elsewhere in float32: either way the metrics stay within 2 %.
+    let fixtures = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames");
+    let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |device: &str, plugin: Option<&str>| {
+        let mut cmd = bin();
+        cmd.args(["run", fixtures.join("cornell-spp8.exr").to_str().unwrap()])
+            .args(["-o", tmp.path().join(format!("{device}.exr")).to_str().unwrap()])
+            .args(["--reference", fixtures.join("cornell-ref.exr").to_str().unwrap()])
+            .args(["--models", models.to_str().unwrap(), "--threads", "2", "--device", device]);
+        if let Some(p) = plugin {
+            cmd.env("MCDENOISE_OPENVINO_PLUGIN", p);
+        }
+        cmd.output().unwrap()
+    };
+    let report = |res: &std::process::Output| -> serde_json::Value {
+        assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
+        serde_json::from_slice(&res.stdout).unwrap()
+    };
+    let (cpu, openvino) = (report(&run("cpu", None)), report(&run("openvino", None)));
+    assert_eq!((cpu["device"].as_str(), openvino["device"].as_str()), (Some("cpu"), Some("openvino")));
+    for metric in ["relmse", "dssim"] {
+        let (a, b) = (
+            cpu["metrics"]["output"][metric].as_f64().unwrap(),
+            openvino["metrics"]["output"][metric].as_f64().unwrap(),
+        );
+        assert!((b / a - 1.0).abs() < 0.02, "{metric}: cpu {a}, openvino {b}");
+        assert!(b < 0.5 * openvino["metrics"]["input"][metric].as_f64().unwrap(), "{metric}: {b}");
+    }
+    // Without the plugin: `openvino` is an error naming where it looked, `auto` the CPU provider.
+    let missing = tmp.path().join("nowhere/libonnxruntime_providers_openvino_plugin.so");
+    let res = run("openvino", missing.to_str());
+    assert_eq!(res.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&res.stderr);
+    for part in
+        ["--device openvino: OpenVINO's execution provider plugin not found", missing.to_str().unwrap(), "--device cpu"]
+    {
+        assert!(err.contains(part), "{part}: {err}");
+    }
+    assert_eq!(report(&run("auto", missing.to_str()))["device"], "cpu");
+    // With it, `auto` takes OpenVINO exactly where the CPU has AMX.
+    let expected = if mcdenoise::engine::device::cpu_has_amx_bf16() { "openvino" } else { "cpu" };
+    assert_eq!(report(&run("auto", None))["device"], expected);
 }
 
 #[test]

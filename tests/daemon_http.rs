@@ -417,7 +417,8 @@ async fn metrics_models_and_openapi_are_served_from_the_start() {
     assert_eq!(status, StatusCode::OK);
     assert_eq!(info["version"], env!("CARGO_PKG_VERSION"));
     assert_eq!((info["phase"].as_str(), info["ready"].as_bool()), (Some("ready"), Some(true)));
-    assert_eq!(info["device"]["kind"], "cpu");
+    // The device as asked, and where it resolved (`auto` would name what it chose).
+    assert_eq!((info["device"]["kind"].as_str(), info["device"]["runs_on"].as_str()), (Some("cpu"), Some("cpu")));
     assert_eq!(info["device"]["workers"], 1);
     assert_eq!(info["models"].as_array().map(Vec::len), Some(4), "{info}");
     assert_eq!(info["settings"]["queue_capacity"], 256, "{info}");

@@ -45,7 +45,7 @@ fn tiled_output_equals_whole_frame_output() {
         }
         // Cores split further by the region bound give the same pixels.
         let mut config = EngineConfig::new(tiny_v2());
-        (config.tile_v2, config.region_pixels, config.threads) = (1000, 40 * 40, 2);
+        (config.tile_v2, config.region_pixels, config.threads) = (1000, Some(40 * 40), 2);
         let bounded = Engine::load(&config).unwrap().denoise(&frame, None, &mut |_| true).unwrap();
         assert!(bounded.tiles >= 6, "{} tiles", bounded.tiles);
         for c in 0..3 {

@@ -397,6 +397,11 @@ fn daemon() -> &'static Daemon {
             &pixels,
             "--max-body-bytes",
             "262144",
+            // ONNX Runtime's CPU provider whatever `auto` would choose: this service runs in
+            // the fuzzer's (or the test's) process, which OpenVINO would share with the
+            // CPU provider's sessions of other tests (src/engine/device.rs).
+            "--device",
+            "cpu",
         ])
         .expect("valid arguments");
         let runtime = tokio::runtime::Builder::new_multi_thread().worker_threads(1).enable_all().build().unwrap();

@@ -1,6 +1,18 @@
-//! Where inference runs: `cpu`, `cuda[:N]` (ONNX Runtime's CUDA execution provider on GPU
+//! Where inference runs: `cpu`, `openvino` (the CPU through OpenVINO's execution provider,
+//! in bfloat16 on CPUs with AMX), `cuda[:N]` (ONNX Runtime's CUDA execution provider on GPU
 //! N), or `auto` (CUDA when the ONNX Runtime library has its provider and a device is
-//! visible, else the CPU).
+//! visible, else OpenVINO on a CPU with AMX where its plugin is installed, else the CPU).
+//!
+//! OpenVINO's execution provider is a plugin library (`onnxruntime-ep-openvino`, which
+//! carries OpenVINO's runtime) that `scripts/install-ort` puts beside ONNX Runtime's
+//! library and the engine registers with ONNX Runtime when it is asked for
+//! ([`super::runtime::register_openvino`]). On a CPU with native bfloat16 OpenVINO runs the
+//! convolutions in bfloat16 (its default there: AMX tiles on Intel Xeon since Sapphire
+//! Rapids); elsewhere in float32, where ONNX Runtime's own CPU provider is faster
+//! (docs/results/speed-work.md). A process runs one device: once OpenVINO has run in a
+//! process, sessions of ONNX Runtime's CPU provider in the same process gave results that
+//! differ by up to 5e-4 (relative) from a process without it, so tests that compare the CPU
+//! provider's outputs keep OpenVINO out of their process.
 //!
 //! The CUDA execution provider lives in the GPU build of ONNX Runtime (`onnxruntime-gpu`,
 //! the GPU image; docs/deploy.md). The CPU build the default setup installs has none:
@@ -20,9 +32,12 @@ pub enum Device {
     /// ONNX Runtime's CPU execution provider.
     #[default]
     Cpu,
+    /// The CPU through OpenVINO's execution provider plugin.
+    OpenVino,
     /// ONNX Runtime's CUDA execution provider on this GPU.
     Cuda(u32),
-    /// CUDA (GPU 0) where available, else the CPU.
+    /// CUDA (GPU 0) where available, else OpenVINO on a CPU with AMX where its plugin is
+    /// installed, else the CPU.
     Auto,
 }
 
@@ -32,13 +47,14 @@ impl FromStr for Device {
     fn from_str(s: &str) -> Result<Device, String> {
         match s.trim() {
             "cpu" => Ok(Device::Cpu),
+            "openvino" => Ok(Device::OpenVino),
             "auto" => Ok(Device::Auto),
             "cuda" => Ok(Device::Cuda(0)),
             other => match other.strip_prefix("cuda:").map(str::parse::<u32>) {
                 Some(Ok(n)) => Ok(Device::Cuda(n)),
-                _ => {
-                    Err(format!("unknown device `{other}` (expected `auto`, `cpu`, `cuda` or `cuda:N`, N a GPU index)"))
-                }
+                _ => Err(format!(
+                    "unknown device `{other}` (expected `auto`, `cpu`, `openvino`, `cuda` or `cuda:N`, N a GPU index)"
+                )),
             },
         }
     }
@@ -48,6 +64,7 @@ impl fmt::Display for Device {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             Device::Cpu => f.write_str("cpu"),
+            Device::OpenVino => f.write_str("openvino"),
             Device::Cuda(n) => write!(f, "cuda:{n}"),
             Device::Auto => f.write_str("auto"),
         }
@@ -116,30 +133,82 @@ pub fn cuda_devices() -> Result<u32, String> {
     }
 }
 
+/// Whether the CPU has AMX with bfloat16 (Intel Xeon since Sapphire Rapids), where
+/// OpenVINO's bfloat16 convolutions ran the default network 2.5x as fast as ONNX Runtime's
+/// float32 ones (docs/results/speed-work.md). CPUID leaf 7: EDX bit 22 (AMX-BF16) and bit 24
+/// (AMX-TILE); the kernel's permission to use the tiles is OpenVINO's to ask for.
+pub fn cpu_has_amx_bf16() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        // Leaf 7 exists where leaf 0 reports a maximum of at least 7, checked first.
+        if std::arch::x86_64::__cpuid(0).eax >= 7 {
+            let edx = std::arch::x86_64::__cpuid_count(7, 0).edx;
+            return edx & (1 << 22) != 0 && edx & (1 << 24) != 0;
+        }
+    }
+    false
+}
+
+/// What [`Device::resolve`] found on this machine.
+struct Found {
+    /// Whether the loaded ONNX Runtime library has the CUDA execution provider.
+    cuda_provider: bool,
+    /// What the NVIDIA driver said, asked only when the provider could use it.
+    cuda_devices: Result<u32, String>,
+    /// Whether the CPU has AMX with bfloat16 ([`cpu_has_amx_bf16`]).
+    amx: bool,
+}
+
 impl Device {
     /// The device sessions are built for once the library is loaded: `auto` becomes
     /// `cuda:0` where the library has the CUDA provider and the driver reports a GPU, else
-    /// `cpu`; `cuda:N` without the provider, the driver or GPU N is an error naming what is
-    /// missing.
-    pub fn resolve(self, library: &str) -> Result<Device, String> {
-        let provider = cuda_provider_available();
-        // The driver is asked only when the provider could use it.
-        self.resolve_with(library, provider, if provider { cuda_devices() } else { Ok(0) })
+    /// `openvino` on a CPU with AMX where OpenVINO's plugin registers, else `cpu`;
+    /// `cuda:N` without the provider, the driver or GPU N is an error naming what is
+    /// missing, and so is `openvino` without its plugin. `openvino` registers the plugin
+    /// with `env` (once per process).
+    pub fn resolve(self, env: &ort::environment::Environment, library: &str) -> Result<Device, String> {
+        let cuda_provider = matches!(self, Device::Auto | Device::Cuda(_)) && cuda_provider_available();
+        let found = Found {
+            cuda_provider,
+            // The driver is asked only when the provider could use it.
+            cuda_devices: if cuda_provider { cuda_devices() } else { Ok(0) },
+            amx: cpu_has_amx_bf16(),
+        };
+        self.resolve_with(library, found, || super::runtime::register_openvino(env).map(|_| ()))
     }
 
-    /// [`Device::resolve`] given what was found: whether the library has the CUDA provider
-    /// and what the driver said.
-    fn resolve_with(self, library: &str, provider: bool, devices: Result<u32, String>) -> Result<Device, String> {
+    /// [`Device::resolve`] given what was found, with `openvino` registering the plugin
+    /// (called only for `openvino`, and for `auto` on a CPU with AMX and no GPU).
+    fn resolve_with(
+        self,
+        library: &str,
+        found: Found,
+        openvino: impl FnOnce() -> Result<(), String>,
+    ) -> Result<Device, String> {
         const INSTEAD: &str = "or choose --device cpu (or auto)";
+        let Found { cuda_provider: provider, cuda_devices: devices, amx } = found;
         match self {
             Device::Auto if provider && matches!(devices, Ok(n) if n > 0) => Ok(Device::Cuda(0)),
             Device::Auto => {
                 if provider {
                     let why = devices.map_or_else(|e| e, |_| "the NVIDIA driver reports no GPU".to_string());
-                    tracing::warn!("--device auto: running on the CPU: {why}");
+                    tracing::warn!("--device auto: no GPU: {why}");
                 }
-                Ok(Device::Cpu)
+                if !amx {
+                    return Ok(Device::Cpu);
+                }
+                match openvino() {
+                    Ok(()) => Ok(Device::OpenVino),
+                    Err(e) => {
+                        tracing::warn!(
+                            "--device auto: this CPU has AMX, but OpenVINO's plugin is not available ({e}); \
+                             running on ONNX Runtime's CPU provider"
+                        );
+                        Ok(Device::Cpu)
+                    }
+                }
             }
+            Device::OpenVino => openvino().map(|()| self).map_err(|e| format!("--device openvino: {e}; {INSTEAD}")),
             Device::Cuda(n) if !provider => Err(format!(
                 "--device cuda:{n}: the ONNX Runtime library {library} has no CUDA execution provider \
                  (it is the CPU build); use the GPU image, or point ORT_DYLIB_PATH at the library of \
@@ -193,25 +262,48 @@ mod tests {
     fn devices_resolve_from_the_provider_and_the_driver() {
         let lib = "/opt/lib/libonnxruntime.so.1.31.1";
         let no_driver = || Err("the NVIDIA driver library libcuda.so.1 cannot be loaded (not found)".to_string());
+        let found = |cuda_provider, cuda_devices| Found { cuda_provider, cuda_devices, amx: false };
+        let no_openvino = || -> Result<(), String> { panic!("OpenVINO asked for on a CPU without AMX") };
         // auto: CUDA only with the provider and a GPU.
-        assert_eq!(Device::Auto.resolve_with(lib, true, Ok(2)), Ok(Device::Cuda(0)));
+        assert_eq!(Device::Auto.resolve_with(lib, found(true, Ok(2)), no_openvino), Ok(Device::Cuda(0)));
         for (provider, devices) in [(false, Ok(0)), (true, Ok(0)), (true, no_driver())] {
-            assert_eq!(Device::Auto.resolve_with(lib, provider, devices), Ok(Device::Cpu));
+            assert_eq!(Device::Auto.resolve_with(lib, found(provider, devices), no_openvino), Ok(Device::Cpu));
         }
-        assert_eq!(Device::Cpu.resolve_with(lib, true, no_driver()), Ok(Device::Cpu));
-        assert_eq!(Device::Cuda(1).resolve_with(lib, true, Ok(2)), Ok(Device::Cuda(1)));
+        assert_eq!(Device::Cpu.resolve_with(lib, found(true, no_driver()), no_openvino), Ok(Device::Cpu));
+        assert_eq!(Device::Cuda(1).resolve_with(lib, found(true, Ok(2)), no_openvino), Ok(Device::Cuda(1)));
         // cuda: each missing part named.
-        let err = Device::Cuda(0).resolve_with(lib, false, Ok(0)).unwrap_err();
+        let err = Device::Cuda(0).resolve_with(lib, found(false, Ok(0)), no_openvino).unwrap_err();
         assert!(err.contains(lib) && err.contains("CPU build") && err.contains("--device cpu"), "{err}");
-        let err = Device::Cuda(0).resolve_with(lib, true, no_driver()).unwrap_err();
+        let err = Device::Cuda(0).resolve_with(lib, found(true, no_driver()), no_openvino).unwrap_err();
         assert!(
             err.starts_with("--device cuda:0: the NVIDIA driver library libcuda.so.1") && err.contains("--gpus all"),
             "{err}"
         );
-        let err = Device::Cuda(2).resolve_with(lib, true, Ok(2)).unwrap_err();
+        let err = Device::Cuda(2).resolve_with(lib, found(true, Ok(2)), no_openvino).unwrap_err();
         assert!(err.contains("reports 2 GPU(s), numbered 0 to 1"), "{err}");
-        let err = Device::Cuda(0).resolve_with(lib, true, Ok(0)).unwrap_err();
+        let err = Device::Cuda(0).resolve_with(lib, found(true, Ok(0)), no_openvino).unwrap_err();
         assert!(err.contains("reports 0 GPU(s);"), "{err}");
+    }
+
+    #[test]
+    fn openvino_is_chosen_on_a_cpu_with_amx_where_its_plugin_registers() {
+        let lib = "/opt/lib/libonnxruntime.so.1.31.1";
+        let amx = |amx| Found { cuda_provider: false, cuda_devices: Ok(0), amx };
+        let missing = || Err("OpenVINO's execution provider plugin not found (looked for /x/openvino)".to_string());
+        // auto: OpenVINO with AMX and the plugin; the CPU provider without either.
+        assert_eq!(Device::Auto.resolve_with(lib, amx(true), || Ok(())), Ok(Device::OpenVino));
+        assert_eq!(Device::Auto.resolve_with(lib, amx(true), missing), Ok(Device::Cpu));
+        assert_eq!(Device::Auto.resolve_with(lib, amx(false), || Ok(())), Ok(Device::Cpu));
+        // A GPU comes first.
+        let gpu = Found { cuda_provider: true, cuda_devices: Ok(1), amx: true };
+        assert_eq!(Device::Auto.resolve_with(lib, gpu, || Ok(())), Ok(Device::Cuda(0)));
+        // openvino asked for by name: on any CPU, an error naming what is missing without the plugin.
+        assert_eq!(Device::OpenVino.resolve_with(lib, amx(false), || Ok(())), Ok(Device::OpenVino));
+        let err = Device::OpenVino.resolve_with(lib, amx(true), missing).unwrap_err();
+        assert!(err.starts_with("--device openvino: OpenVINO's execution provider plugin not found"), "{err}");
+        assert!(err.contains("--device cpu"), "{err}");
+        assert_eq!("openvino".parse::<Device>(), Ok(Device::OpenVino));
+        assert_eq!(Device::OpenVino.to_string(), "openvino");
     }
 
     #[test]

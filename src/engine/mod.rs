@@ -69,9 +69,10 @@ pub struct EngineConfig {
     /// halo is wider, so their tiles are larger.
     pub tile_v2: usize,
     /// Largest region (a core with its halo) the networks run on, in pixels: the frame is
-    /// cut into more, smaller cores where a region would be larger. It bounds ONNX
-    /// Runtime's working memory, which follows the region's pixels ([`DEFAULT_REGION_PIXELS`]).
-    pub region_pixels: usize,
+    /// cut into more, smaller cores where a region would be larger. It bounds the
+    /// runtime's working memory, which follows the region's pixels. `None`: the device's
+    /// default ([`default_region_pixels`]).
+    pub region_pixels: Option<usize>,
     /// Threads for ONNX Runtime and for pre/post-processing.
     pub threads: usize,
     /// Explicit path of libonnxruntime; otherwise it is searched for (see [`runtime`]).
@@ -112,7 +113,7 @@ impl EngineConfig {
             models_dir: models_dir.into(),
             tile: 256,
             tile_v2: DEFAULT_TILE_V2,
-            region_pixels: DEFAULT_REGION_PIXELS,
+            region_pixels: None,
             threads: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             ort_library: None,
             device: Device::Cpu,
@@ -139,6 +140,22 @@ pub const DEFAULT_TILE_V2: usize = 768;
 /// more than 768² cores in a balanced grid (their regions stay under 0.62 M pixels), so
 /// the bound applies to larger frames only (docs/results/speed-work.md).
 pub const DEFAULT_REGION_PIXELS: usize = 896 * 768;
+
+/// The same with OpenVINO (`--device openvino`): 768 × 750. Its working memory for a
+/// region is larger than ONNX Runtime's CPU provider's (`mcdenoise run`, 2 threads, Intel
+/// Xeon with AMX, the bench frame tiled into 3840×2160: peak 1.58–1.59 GB with 896 × 768
+/// regions, 1.39 GB with these, at the same speed; 1920×1080 1.12 → 0.97 GB, 10 % slower;
+/// 1280×720's two regions are under both bounds, 1.0 GB).
+pub const OPENVINO_REGION_PIXELS: usize = 768 * 750;
+
+/// The region bound where none is given: [`OPENVINO_REGION_PIXELS`] with OpenVINO, else
+/// [`DEFAULT_REGION_PIXELS`].
+pub fn default_region_pixels(device: Device) -> usize {
+    match device {
+        Device::OpenVino => OPENVINO_REGION_PIXELS,
+        Device::Cpu | Device::Cuda(_) | Device::Auto => DEFAULT_REGION_PIXELS,
+    }
+}
 
 /// Time spent per stage.
 #[derive(Clone, Copy, Debug, Default, Serialize)]
@@ -241,7 +258,8 @@ impl Engine {
         let env = runtime::environment(config.ort_library.as_deref()).map_err(EngineError::Runtime)?;
         let threads = config.threads.max(1);
         let library = runtime::library().map_or_else(|| "loaded".to_string(), |p| p.display().to_string());
-        let device = config.device.resolve(&library).map_err(EngineError::Runtime)?;
+        let device = config.device.resolve(env, &library).map_err(EngineError::Runtime)?;
+        tracing::info!(asked = %config.device, device = %device, "the networks run on {device}");
         let placement = model::Placement {
             threads,
             device,
@@ -266,7 +284,7 @@ impl Engine {
             placement,
             tile: config.tile,
             tile_v2: config.tile_v2,
-            region_pixels: config.region_pixels,
+            region_pixels: config.region_pixels.unwrap_or_else(|| default_region_pixels(device)),
             pool,
             device,
             albedo_prefilter: config.albedo_prefilter,
@@ -486,6 +504,11 @@ pub trait Denoiser {
     /// The loaded networks.
     fn models(&self) -> Vec<ModelInfo>;
 
+    /// Where the networks run (`auto` resolved), where the denoiser knows.
+    fn device(&self) -> Option<Device> {
+        None
+    }
+
     /// Denoises `frame` (see [`Engine::denoise_with`]): `on_tile` is called after each tile,
     /// and returning `false` stops between tiles with [`EngineError::Cancelled`].
     fn denoise(
@@ -499,6 +522,10 @@ pub trait Denoiser {
 impl Denoiser for Engine {
     fn models(&self) -> Vec<ModelInfo> {
         Engine::models(self).into_iter().cloned().collect()
+    }
+
+    fn device(&self) -> Option<Device> {
+        Some(self.device)
     }
 
     fn denoise(

@@ -86,7 +86,7 @@ fn model_error(path: &Path, reason: impl Into<String>) -> EngineError {
 pub struct Placement {
     /// Intra-op threads (CPU work, and the host side of a GPU session).
     pub threads: usize,
-    /// Resolved: `cpu` or `cuda:N` ([`Device::resolve`]).
+    /// Resolved: `cpu`, `openvino` or `cuda:N` ([`Device::resolve`]).
     pub device: Device,
     /// Where contract-v2 kernels are applied (which file of a v2 variant is loaded).
     pub reconstruction: Reconstruction,
@@ -129,6 +129,10 @@ pub fn build_session(env: &ort::environment::Environment, path: &Path, placement
             .with_device_id(i32::try_from(n).unwrap_or(i32::MAX))
             .build()
             .error_on_failure()])?,
+        Device::OpenVino => {
+            let options = [(format!("{}.load_config", super::runtime::OPENVINO_EP), openvino_config(threads)?)];
+            builder.with_devices(super::runtime::openvino_cpu(env), Some(&options))?
+        }
         Device::Cpu | Device::Auto => builder,
     };
     builder
@@ -143,6 +147,33 @@ pub fn build_session(env: &ort::environment::Environment, path: &Path, placement
         .with_inter_threads(1)?
         .with_intra_op_spinning(false)?
         .commit_from_file(path)
+}
+
+/// OpenVINO's CPU properties for a session (its `load_config`): its thread count (it runs
+/// its own pool), one stream for one request at a time, and its default precision
+/// (bfloat16 where the CPU has it natively, else float32); `$MCDENOISE_OPENVINO_CONFIG`, a
+/// JSON object of further CPU properties (`{"INFERENCE_PRECISION_HINT": "f32"}`), is laid
+/// over them.
+fn openvino_config(threads: usize) -> ort::Result<String> {
+    let mut cpu = serde_json::json!({
+        "INFERENCE_NUM_THREADS": threads.to_string(),
+        "NUM_STREAMS": "1",
+        "PERFORMANCE_HINT": "LATENCY",
+    });
+    if let Some(extra) = std::env::var("MCDENOISE_OPENVINO_CONFIG").ok().filter(|v| !v.trim().is_empty()) {
+        let bad = |why: &str| ort::Error::new(format!("MCDENOISE_OPENVINO_CONFIG: {why} (got `{extra}`)"));
+        let serde_json::Value::Object(extra) = serde_json::from_str(&extra).map_err(|e| bad(&e.to_string()))? else {
+            return Err(bad("expected a JSON object of OpenVINO CPU properties"));
+        };
+        for (key, value) in extra {
+            let value = match value {
+                serde_json::Value::String(s) => s,
+                other => other.to_string(),
+            };
+            cpu[key] = serde_json::Value::String(value);
+        }
+    }
+    Ok(serde_json::json!({ "CPU": cpu }).to_string())
 }
 
 /// A model file opened in a session, with its metadata read.
@@ -368,7 +399,7 @@ impl Binding {
                     MemoryInfo::new(AllocationDevice::CUDA_PINNED, id, AllocatorType::Device, MemoryType::CPUOutput)?,
                 )
             }
-            Device::Cpu | Device::Auto => {
+            Device::Cpu | Device::OpenVino | Device::Auto => {
                 let cpu = || MemoryInfo::new(AllocationDevice::CPU, 0, AllocatorType::Device, MemoryType::Default);
                 (cpu()?, cpu()?)
             }

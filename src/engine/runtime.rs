@@ -14,6 +14,15 @@ pub const ORT_VERSION: &str = "1.31.1";
 
 static ENVIRONMENT: OnceLock<Result<Environment, String>> = OnceLock::new();
 static LIBRARY: OnceLock<PathBuf> = OnceLock::new();
+static OPENVINO: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+
+/// The file name of OpenVINO's execution provider plugin (`onnxruntime-ep-openvino`), which
+/// `scripts/install-ort` puts, with the OpenVINO runtime it carries, in an `openvino`
+/// directory beside ONNX Runtime's library.
+pub const OPENVINO_PLUGIN: &str = "libonnxruntime_providers_openvino_plugin.so";
+
+/// The name ONNX Runtime gives the plugin's execution provider.
+pub const OPENVINO_EP: &str = "OpenVINOExecutionProvider";
 
 /// The library [`environment`] loaded, once it has.
 pub fn library() -> Option<&'static Path> {
@@ -47,6 +56,58 @@ pub fn candidates(explicit: Option<&Path>) -> Vec<PathBuf> {
         out.push(Path::new(dir).join("libonnxruntime.so"));
     }
     out
+}
+
+/// Where OpenVINO's plugin is looked for: `$MCDENOISE_OPENVINO_PLUGIN` alone where it is
+/// set, else the `openvino` directory beside the loaded ONNX Runtime library, then under
+/// `$MCDENOISE_HOME/lib` and `~/.cache/mcdenoise/lib`.
+pub fn openvino_candidates() -> Vec<PathBuf> {
+    if let Some(p) = std::env::var_os("MCDENOISE_OPENVINO_PLUGIN").filter(|p| !p.is_empty()) {
+        return vec![PathBuf::from(p)];
+    }
+    let mut out = Vec::new();
+    if let Some(dir) = library().and_then(Path::parent) {
+        out.push(dir.join("openvino").join(OPENVINO_PLUGIN));
+    }
+    if let Some(home) = std::env::var_os("MCDENOISE_HOME").filter(|p| !p.is_empty()) {
+        out.push(PathBuf::from(home).join("lib/openvino").join(OPENVINO_PLUGIN));
+    }
+    if let Some(home) = std::env::var_os("HOME").filter(|p| !p.is_empty()) {
+        out.push(PathBuf::from(home).join(".cache/mcdenoise/lib/openvino").join(OPENVINO_PLUGIN));
+    }
+    out
+}
+
+/// Registers OpenVINO's execution provider plugin with `env` (once per process; later calls
+/// return the first answer) and checks that it offers the CPU; returns the plugin's path.
+pub fn register_openvino(env: &Environment) -> Result<&'static Path, String> {
+    OPENVINO
+        .get_or_init(|| {
+            let tried = openvino_candidates();
+            let Some(path) = tried.iter().find(|p| p.is_file()) else {
+                return Err(format!(
+                    "OpenVINO's execution provider plugin not found (looked for {}). Install it with \
+                     `scripts/install-ort` (part of `scripts/setup`), or point MCDENOISE_OPENVINO_PLUGIN at {OPENVINO_PLUGIN}",
+                    tried.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")
+                ));
+            };
+            env.register_ep_library("openvino", path)
+                .map_err(|e| format!("cannot register OpenVINO's plugin {}: {e}", path.display()))?;
+            if openvino_cpu(env).next().is_none() {
+                return Err(format!("OpenVINO's plugin {} offers no CPU device", path.display()));
+            }
+            Ok(path.clone())
+        })
+        .as_ref()
+        .map(PathBuf::as_path)
+        .map_err(Clone::clone)
+}
+
+/// The CPU devices OpenVINO's plugin offers, once registered.
+pub fn openvino_cpu(env: &Environment) -> impl Iterator<Item = ort::device::Device<'_>> {
+    env.devices().filter(|d| {
+        d.ep().is_ok_and(|ep| ep == OPENVINO_EP) && d.hardware_device().ty() == ort::memory::DeviceType::CPU
+    })
 }
 
 /// Loads the library (once per process) and returns the shared environment.

@@ -310,6 +310,7 @@ async fn info(State(app): State<AppState>, Extension(caller): Extension<Caller>)
         "ready": app.service.is_ready(),
         "device": {
             "kind": s.engine.device.to_string(),
+            "runs_on": app.service.device().map(|d| d.to_string()),
             "cores": cores,
             "workers": s.workers,
             "threads_per_worker": s.engine.threads,

@@ -80,9 +80,13 @@ impl WorkerLink {
         self.service.now()
     }
 
-    /// A worker has loaded its models; the service is ready once every worker has.
-    pub fn ready(&self, models: Vec<ModelInfo>) {
+    /// A worker has loaded its models on `device`; the service is ready once every worker
+    /// has.
+    pub fn ready(&self, models: Vec<ModelInfo>, device: Option<crate::engine::Device>) {
         let s = &self.service;
+        if let Some(d) = device {
+            let _ = s.inner.device.set(d);
+        }
         if s.inner.models.set(models).is_ok() {
             for m in s.models().unwrap_or_default() {
                 s.inner.telemetry.model_loaded(m.variant.name(), m.component_name(), &m.architecture, &m.sha256);
@@ -169,14 +173,18 @@ impl WorkerLink {
         r.started_at_ms = Some(now);
         // The tiles of the job's variant, cut as the engine will cut them (for `auto`: as
         // for `full`, whose shape the shipped `nocov` shares); the worker's progress reports
-        // have the exact count.
+        // have the exact count (and the region bound of the device the engine resolved).
         let engine = &s.inner.settings.engine;
         let variant = r.options.variant.unwrap_or(crate::engine::Variant::Full);
         let infos: Vec<_> = s.models().into_iter().flatten().filter(|m| m.variant == variant).collect();
         let plan = if infos.is_empty() {
             crate::engine::Tiling::plain(engine.tile)
         } else {
-            crate::engine::Tiling::for_model(&infos, [engine.tile, engine.tile_v2], engine.region_pixels)
+            crate::engine::Tiling::for_model(
+                &infos,
+                [engine.tile, engine.tile_v2],
+                engine.region_pixels.unwrap_or_else(|| crate::engine::default_region_pixels(engine.device)),
+            )
         };
         let tiles = plan.cores(r.width as usize, r.height as usize).len();
         r.progress = Progress { tiles_done: 0, tiles_total: tiles as u32 };

@@ -237,6 +237,8 @@ struct Inner {
     /// Set at the shutdown deadline: running jobs stop at their next tile and are requeued.
     abort: AtomicBool,
     models: OnceLock<Vec<ModelInfo>>,
+    /// Where the first worker's networks run (`--device auto` resolved).
+    device: OnceLock<crate::engine::Device>,
     /// The data directory's problem, `None` while healthy (see [`health`]).
     storage: watch::Sender<Option<StorageProblem>>,
     /// Device and inode of the data directory when the store was opened.
@@ -344,6 +346,7 @@ impl JobService {
                 fatal: watch::channel(None).0,
                 abort: AtomicBool::new(false),
                 models: OnceLock::new(),
+                device: OnceLock::new(),
                 storage: watch::channel(None).0,
                 opened,
                 previews: previews::PreviewCache::new(previews::CACHE_BYTES),
@@ -464,6 +467,11 @@ impl JobService {
     /// The loaded models; `None` until the first worker has loaded them.
     pub fn models(&self) -> Option<&[ModelInfo]> {
         self.inner.models.get().map(Vec::as_slice)
+    }
+
+    /// Where the networks run, once the first worker has loaded them.
+    pub fn device(&self) -> Option<crate::engine::Device> {
+        self.inner.device.get().copied()
     }
 
     /// Jobs running now.

@@ -41,7 +41,7 @@ fn worker_main(link: WorkerLink, denoisers: DenoiserFactory, index: usize) {
         }
     };
     tracing::info!(ms = t.elapsed().as_secs_f64() * 1e3, "models loaded and warmed up");
-    link.ready(denoiser.models());
+    link.ready(denoiser.models(), denoiser.device());
     while let Some(claim) = link.next_job() {
         // Each run is a trace of its own, or continues its submission's ([`crate::otlp`]).
         let span = tracing::info_span!(

@@ -88,9 +88,19 @@ def test_install_ort_installs_the_pinned_library(tmp_path):
     lib = tmp_path / "lib" / "libonnxruntime.so.1.31.1"
     data = lib.read_bytes()
     assert data[:4] == b"\x7fELF" and hashlib.sha256(data).hexdigest() == pinned
-    assert list((tmp_path / "lib").iterdir()) == [lib]  # no leftovers
+    # Beside it, OpenVINO's plugin and runtime, each file as recorded; no leftovers.
+    openvino = tmp_path / "lib" / "openvino"
+    assert sorted((tmp_path / "lib").iterdir()) == [lib, openvino]
+    sums = (openvino / "SHA256SUMS").read_text().splitlines()
+    assert sums[0] == "# install-ort --openvino"
+    recorded = {line.split()[1] for line in sums[1:]}
+    assert "libonnxruntime_providers_openvino_plugin.so" in recorded and "libopenvino_intel_cpu_plugin.so" in recorded
+    assert {p.name for p in openvino.iterdir()} == recorded | {"SHA256SUMS"}
+    check = subprocess.run("grep -v '^#' SHA256SUMS | sha256sum --quiet -c -", shell=True, cwd=openvino)
+    assert check.returncode == 0
     again = subprocess.run(["bash", str(script), str(tmp_path / "lib")], capture_output=True, text=True, env=env)
     assert again.returncode == 0 and "already installed" in again.stderr
+    assert "the openvino build is already installed" in again.stderr
     # A damaged library is replaced, not trusted.
     lib.write_bytes(b"not a library")
     fixed = subprocess.run(["bash", str(script), str(tmp_path / "lib")], capture_output=True, text=True, env=env, timeout=300)
@@ -185,6 +195,9 @@ def test_the_gpu_image_runs_the_networks_on_cuda():
     assert any("scripts/install-ort --cuda /out/lib" in r for r in runs), runs
     assert ("COPY", f"--from={gpu_source()} /out/lib/ {lib_dir}/") in all_stages["gpu"]
     assert ("COPY", f"--from=ort /out/lib/libonnxruntime.so.1.31.1 {lib_dir}/") in all_stages["cpu"]
+    # The CPU image also carries OpenVINO's plugin where the engine looks for it, beside the
+    # library (src/engine/runtime.rs).
+    assert ("COPY", f"--from=ort /out/lib/openvino/ {lib_dir}/openvino/") in all_stages["cpu"]
 
 
 def gpu_source() -> str:
@@ -266,7 +279,8 @@ def test_install_ort_pins_the_cuda_build():
     version = re.search(r"^ORT_VERSION=(\S+)$", text, re.M).group(1)
     entries = re.findall(r'^  "(\S+)==(\S+) (\S+\.whl) ([0-9a-f]{64}) (.+)"$', text, re.M)
     names = {e[0] for e in entries}
-    assert names == {"onnxruntime-gpu", "nvidia-cuda-runtime", "nvidia-cublas", "nvidia-curand", "nvidia-cudnn-cu13"}
+    assert names == {"onnxruntime-gpu", "nvidia-cuda-runtime", "nvidia-cublas", "nvidia-curand", "nvidia-cudnn-cu13",
+                     "onnxruntime-ep-openvino"}
     assert ("onnxruntime-gpu", version) in {(e[0], e[1]) for e in entries}
     for name, ver, wheel, _, members in entries:
         assert wheel.startswith(name.replace("-", "_") + "-" + ver + "-"), wheel

@@ -1,5 +1,5 @@
 """The set-up is split by need (scripts/setup serve|train|test): serving takes only the ONNX
-Runtime library, never the training environment (torch, Mitsuba: about 5 GB). Checked
+Runtime library (with OpenVINO's provider plugin), never the training environment (torch, Mitsuba: about 5 GB). Checked
 offline: the make targets' dry runs, and scripts/setup serve against stubbed tools and a
 local package index."""
 
@@ -90,10 +90,19 @@ def files_under(path) -> list[str]:
     return sorted(str(p.relative_to(path)) for p in path.rglob("*"))
 
 
-def test_setup_serve_with_the_library_in_place_does_nothing_else(tmp_path):
-    home = tmp_path / "home"
+def library_in_place(home):
+    """The library and OpenVINO's plugin as `scripts/install-ort` left them, copied from this
+    machine's set-up into `home`."""
     (home / "lib").mkdir(parents=True)
     shutil.copy(ort_library(), home / "lib" / "libonnxruntime.so.1.31.1")
+    shutil.copytree(os.path.join(os.path.dirname(ort_library()), "openvino"), home / "lib" / "openvino")
+
+
+def test_setup_serve_with_the_library_in_place_does_nothing_else(tmp_path):
+    home = tmp_path / "home"
+    library_in_place(home)
+    installed = files_under(home)
+    assert "lib/openvino/SHA256SUMS" in installed and "lib/libonnxruntime.so.1.31.1" in installed
     path, log = stub_tools(tmp_path)
     env = dict(os.environ, MCDENOISE_HOME=str(home), PATH=path)
     env.pop("PYTHON", None)
@@ -102,7 +111,7 @@ def test_setup_serve_with_the_library_in_place_does_nothing_else(tmp_path):
         assert r.returncode == 0, r.stderr
         assert "ready: ORT library" in r.stderr
         assert not log.exists(), log.read_text()
-        assert files_under(home) == ["lib", "lib/libonnxruntime.so.1.31.1"]
+        assert files_under(home) == installed
 
 
 def test_setup_train_with_everything_in_place_does_nothing_else(tmp_path):
@@ -113,8 +122,7 @@ def test_setup_train_with_everything_in_place_does_nothing_else(tmp_path):
     import hashlib
 
     home = tmp_path / "home"
-    (home / "lib").mkdir(parents=True)
-    shutil.copy(ort_library(), home / "lib" / "libonnxruntime.so.1.31.1")
+    library_in_place(home)
     venv_bin = home / "venv" / "bin"
     venv_bin.mkdir(parents=True)
     for tool in ["python", "pip"]:
@@ -209,5 +217,5 @@ def test_the_image_takes_only_what_serving_needs():
     serving = ["/out/bin/mcdenoise", "scripts/healthcheck", "models/full", "models/nocov", "models/lin2020",
                "models/lin2020-narrow", "models/beauty", "models/MODEL_CARD.md"]
     assert list(all_stages)[-1] == "cpu"
-    assert copied("cpu") == [*serving, "/out/lib/libonnxruntime.so.1.31.1"], copied("cpu")
+    assert copied("cpu") == [*serving, "/out/lib/libonnxruntime.so.1.31.1", "/out/lib/openvino/"], copied("cpu")
     assert copied("gpu") == [*serving, "/out/lib/"], copied("gpu")

@@ -351,7 +351,7 @@ def main(argv=None) -> int:
                     continue
                 ran.add(name)
                 rows.append({**base, "method": name, **rep["metrics"]["output"],
-                             "seconds": rep["timings_ms"]["total"] / 1e3})
+                             "seconds": rep["timings_ms"]["total"] / 1e3, "device": rep.get("device")})
             if a.oidn:
                 for k, quality in enumerate(qualities):
                     name = oidn_method(quality)

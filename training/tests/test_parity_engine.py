@@ -77,7 +77,10 @@ def require_engine() -> str:
 
 def engine(exe: str, *args) -> None:
     cmd = [exe, *map(str, args)]
-    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    # Parity is of the float32 engine: ONNX Runtime's CPU provider, whatever `auto` would
+    # choose on this machine (OpenVINO in bfloat16 on a CPU with AMX).
+    env = {**os.environ, "MCDENOISE_DEVICE": "cpu"}
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     if p.returncode != 0:
         pytest.fail(
             f"`{' '.join(cmd)}` exited with {p.returncode}\n"
