@@ -27,6 +27,17 @@ def conditions(machine: dict) -> list[str]:
     return out
 
 
+def device_words(engine: dict) -> str:
+    """Where the bench's networks ran (`device` of its engine section; older runs: the CPU
+    provider)."""
+    device = engine.get("device", "cpu")
+    if device == "openvino":
+        return ("the networks through OpenVINO's execution provider (`--device auto` on this CPU with AMX: "
+                "bfloat16)")
+    return f"the networks on `{device}` (ONNX Runtime's CPU provider, float32)" if device == "cpu" else \
+        f"the networks on `{device}`"
+
+
 def speed_section(speed: dict, oidn: dict | None) -> list[str]:
     m, g, e, d = speed["machine"], speed["gemm_ceiling"], speed["engine"], speed["daemon"]
     st = e["engine_stages_s"]
@@ -34,7 +45,8 @@ def speed_section(speed: dict, oidn: dict | None) -> list[str]:
     out = [
         "## Speed",
         "",
-        f"Machine: {m['cpu'] or 'unknown CPU'}, {m['threads']} threads, ONNX Runtime {m['ort_version']}. "
+        f"Machine: {m['cpu'] or 'unknown CPU'}, {m['threads']} threads, ONNX Runtime {m['ort_version']}; "
+        f"{device_words(e)}. "
         f"Produced by `{SPEED_CMD}` (benches/speed.rs, benches/oidn_speed.py); every ratio below compares "
         "figures measured in the same run.",
         "",
@@ -138,6 +150,8 @@ def precision_section(speed: dict, fp32: dict) -> list[str]:
         g, gi, e = speed["gemm_ceiling"], q["gemm_ceiling"], q["engine"]
         r = q["time_vs_fp32"]
         out += ["", f"### Int8 against FP32, {e['width']}×{e['height']}", "",
+                *([f"Both models run through OpenVINO here: the \"FP32\" columns are the default model as served on "
+                   "this CPU, in bfloat16.", ""] if fp32.get("device") == "openvino" else []),
                 f"The int8 model is `{q['models']}` (`make bench` quantises the default `{e['variant']}` model "
                 "with `mcdenoise_train.quantize --ops all`: u8 activations, s8 per-channel weights, every operator "
                 "quantised, the kernel and blend heads in float). Int8 GEMM is u8 × s8 into int32 "
@@ -158,7 +172,10 @@ def precision_section(speed: dict, fp32: dict) -> list[str]:
                 "project allows (docs/training.md, Int8)."]
     flags = speed.get("bf16", {}).get("cpu_flags")
     if flags is not None:
-        out += ["", "bf16: this CPU has " + (", ".join(flags) + "; bf16 execution is not measured here." if flags else
+        served = fp32.get("device") == "openvino"
+        out += ["", "bf16: this CPU has " + (", ".join(flags) + (
+            "; the figures above are its bfloat16 (OpenVINO)." if served else "; bf16 execution is not measured here.")
+            if flags else
                 "no bf16 instructions (no avx512_bf16 or amx_bf16 flag), so bf16 is not measured.")]
     return out
 
