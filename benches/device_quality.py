@@ -1,5 +1,5 @@
 """The same frames denoised on two devices, `cpu` (ONNX Runtime's CPU provider, float32) and
-`openvino` (OpenVINO's provider: bfloat16 on a CPU with AMX), and their metrics side by side:
+`openvino` (OpenVINO: bfloat16 on a CPU with AMX or AVX512-BF16), and their metrics side by side:
 what computing the networks in bfloat16 costs in quality.
 
     python benches/device_quality.py --data runs/res-384a --data data-test --models models \\

@@ -31,8 +31,12 @@ def device_words(engine: dict) -> str:
     """Where the bench's networks ran (`device` of its engine section; older runs: the CPU
     provider)."""
     device = engine.get("device", "cpu")
+    if device == "openvino" and engine.get("openvino_via") == "runtime":
+        return ("the networks through OpenVINO's runtime, driven directly (`--device auto` on this CPU with "
+                "AVX512-BF16, which OpenVINO's ONNX Runtime plugin does not serve: bfloat16); \"ONNX Runtime "
+                "alone\" below is OpenVINO alone")
     if device == "openvino":
-        return ("the networks through OpenVINO's execution provider (`--device auto` on this CPU with AMX: "
+        return ("the networks through OpenVINO's execution provider (`--device auto` on this CPU with native "
                 "bfloat16)")
     return f"the networks on `{device}` (ONNX Runtime's CPU provider, float32)" if device == "cpu" else \
         f"the networks on `{device}`"

@@ -89,7 +89,8 @@ pub struct RunArgs {
     pub tile_v2: usize,
     /// Largest region (a tile with its halo) the networks run on, in pixels: larger frames
     /// are cut into more, smaller tiles, which bounds the working memory. Default: 688128
-    /// (896 × 768), 576000 (768 × 750) with `--device openvino`.
+    /// (896 × 768); with `--device openvino` 540000 through its plugin (Intel CPUs),
+    /// 576000 through its runtime (others).
     #[arg(long, env = "MCDENOISE_REGION_PIXELS")]
     pub region_pixels: Option<usize>,
     /// Threads for inference and processing (default: all cores).
@@ -119,9 +120,10 @@ pub struct RunArgs {
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_library: Option<PathBuf>,
     /// Where the networks run: `cpu` (ONNX Runtime's CPU provider), `openvino` (the CPU
-    /// through OpenVINO's provider plugin, in bfloat16 where the CPU has it), `cuda` or
-    /// `cuda:N` (ONNX Runtime's CUDA execution provider, from the GPU build of ONNX
-    /// Runtime), or `auto`: CUDA where available, else `openvino` on a CPU with AMX, else
+    /// through OpenVINO, in bfloat16 where the CPU has it: its ONNX Runtime plugin on Intel
+    /// CPUs, its runtime directly on others), `cuda` or `cuda:N` (ONNX Runtime's CUDA
+    /// execution provider, from the GPU build of ONNX Runtime), or `auto`: CUDA where
+    /// available, else `openvino` on a CPU with native bfloat16 (AMX or AVX512-BF16), else
     /// `cpu`.
     #[arg(long, env = "MCDENOISE_DEVICE", default_value = "auto", value_parser = parse_device)]
     pub device: engine::Device,

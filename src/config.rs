@@ -171,11 +171,12 @@ pub struct ServeArgs {
     #[arg(long, env = "ORT_DYLIB_PATH", help_heading = "Models and workers")]
     pub ort_library: Option<PathBuf>,
     /// Where the networks run: `cpu` (ONNX Runtime's CPU provider), `openvino` (the CPU
-    /// through OpenVINO's provider plugin, in bfloat16 where the CPU has it), `cuda` or
-    /// `cuda:N` (ONNX Runtime's CUDA execution provider on GPU N; needs the GPU build of
-    /// ONNX Runtime, as in the GPU image), or `auto`: CUDA where available, else `openvino`
-    /// on a CPU with AMX where its plugin is installed, else `cpu`. Workers share the
-    /// device: with a GPU, `--workers` is the number of jobs on it at once.
+    /// through OpenVINO, in bfloat16 where the CPU has it: its ONNX Runtime plugin on Intel
+    /// CPUs, its runtime directly on others), `cuda` or `cuda:N` (ONNX Runtime's CUDA
+    /// execution provider on GPU N; needs the GPU build of ONNX Runtime, as in the GPU
+    /// image), or `auto`: CUDA where available, else `openvino` on a CPU with native
+    /// bfloat16 (AMX or AVX512-BF16) where OpenVINO is installed, else `cpu`. Workers share
+    /// the device: with a GPU, `--workers` is the number of jobs on it at once.
     #[arg(long, env = "MCDENOISE_DEVICE", default_value = "auto", value_parser = crate::cli::parse_device, help_heading = "Models and workers")]
     pub device: crate::engine::Device,
     /// Where contract-v2 kernels are applied: `engine` (the engine's own code, on the CPU),
@@ -210,7 +211,8 @@ pub struct ServeArgs {
     /// Largest region (a tile with its halo) the networks run on, in pixels: larger frames
     /// are cut into more, smaller tiles. Bounds a worker's working memory (about 1.3 GB per
     /// million pixels with the default network) at some speed on frames above 1080p.
-    /// Default: 688128 (896 × 768), 576000 (768 × 750) with `--device openvino`.
+    /// Default: 688128 (896 × 768); with `--device openvino` 540000 through its plugin
+    /// (Intel CPUs), 576000 through its runtime (others).
     #[arg(long, env = "MCDENOISE_REGION_PIXELS", help_heading = "Models and workers")]
     pub region_pixels: Option<usize>,
     /// Default firefly handling of jobs that do not set `fireflies` / `firefly_strength`.

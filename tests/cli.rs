@@ -159,12 +159,12 @@ fn cuda_without_the_gpu_build_of_onnx_runtime_is_a_clear_error() {
         assert!(err.contains(part), "{part}: {err}");
     }
     assert!(!err.contains("panicked") && !out.exists(), "{err}");
-    // `auto` falls back to the CPU (through OpenVINO on a CPU with AMX) and the report
-    // says where it ran.
+    // `auto` falls back to the CPU (through OpenVINO on a CPU with native bfloat16) and the
+    // report says where it ran.
     let res = run("auto");
     assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
     let report: serde_json::Value = serde_json::from_slice(&res.stdout).unwrap();
-    let cpu = if mcdenoise::engine::device::cpu_has_amx_bf16() { "openvino" } else { "cpu" };
+    let cpu = if mcdenoise::engine::device::cpu_has_native_bf16() { "openvino" } else { "cpu" };
     assert_eq!(report["device"], cpu);
     let res = run("gpu");
     assert_eq!(res.status.code(), Some(2));
@@ -183,36 +183,48 @@ fn cuda_without_the_gpu_build_of_onnx_runtime_is_a_clear_error() {
 
 #[test]
 fn openvino_runs_the_shipped_network_as_the_cpu_provider_does() {
-    // `scripts/setup` installs OpenVINO's plugin beside the library; on a CPU with AMX it
-    // computes in bfloat16, elsewhere in float32: either way the metrics stay within 2 %.
+    // `scripts/setup` installs OpenVINO's plugin and runtime beside the library; on a CPU
+    // with native bfloat16 they compute in it, elsewhere in float32: either way the metrics
+    // stay within 2 %, through the plugin (an Intel CPU) or the runtime directly (any CPU,
+    // and what `MCDENOISE_OPENVINO_VIA=runtime` takes on an Intel one).
     let fixtures = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames");
     let models = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
     let tmp = tempfile::tempdir().unwrap();
-    let run = |device: &str, plugin: Option<&str>| {
+    let run_via = |device: &str, plugin: Option<&str>, via: &str| {
         let mut cmd = bin();
         cmd.args(["run", fixtures.join("cornell-spp8.exr").to_str().unwrap()])
             .args(["-o", tmp.path().join(format!("{device}.exr")).to_str().unwrap()])
             .args(["--reference", fixtures.join("cornell-ref.exr").to_str().unwrap()])
-            .args(["--models", models.to_str().unwrap(), "--threads", "2", "--device", device]);
+            .args(["--models", models.to_str().unwrap(), "--threads", "2", "--device", device])
+            .env("MCDENOISE_OPENVINO_VIA", via);
         if let Some(p) = plugin {
             cmd.env("MCDENOISE_OPENVINO_PLUGIN", p);
         }
         cmd.output().unwrap()
     };
+    let run = |device: &str, plugin: Option<&str>| run_via(device, plugin, "auto");
     let report = |res: &std::process::Output| -> serde_json::Value {
         assert!(res.status.success(), "{}", String::from_utf8_lossy(&res.stderr));
         serde_json::from_slice(&res.stdout).unwrap()
     };
-    let (cpu, openvino) = (report(&run("cpu", None)), report(&run("openvino", None)));
-    assert_eq!((cpu["device"].as_str(), openvino["device"].as_str()), (Some("cpu"), Some("openvino")));
-    for metric in ["relmse", "dssim"] {
-        let (a, b) = (
-            cpu["metrics"]["output"][metric].as_f64().unwrap(),
-            openvino["metrics"]["output"][metric].as_f64().unwrap(),
-        );
-        assert!((b / a - 1.0).abs() < 0.02, "{metric}: cpu {a}, openvino {b}");
-        assert!(b < 0.5 * openvino["metrics"]["input"][metric].as_f64().unwrap(), "{metric}: {b}");
+    let cpu = report(&run("cpu", None));
+    for via in ["auto", "runtime"] {
+        let openvino = report(&run_via("openvino", None, via));
+        assert_eq!((cpu["device"].as_str(), openvino["device"].as_str()), (Some("cpu"), Some("openvino")));
+        for metric in ["relmse", "dssim"] {
+            let (a, b) = (
+                cpu["metrics"]["output"][metric].as_f64().unwrap(),
+                openvino["metrics"]["output"][metric].as_f64().unwrap(),
+            );
+            assert!((b / a - 1.0).abs() < 0.02, "{via}, {metric}: cpu {a}, openvino {b}");
+            assert!(b < 0.5 * openvino["metrics"]["input"][metric].as_f64().unwrap(), "{via}, {metric}: {b}");
+        }
     }
+    // A route that is not one is named.
+    let res = run_via("openvino", None, "direct");
+    assert_eq!(res.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(err.contains("MCDENOISE_OPENVINO_VIA is `direct`, expected `plugin`, `runtime` or `auto`"), "{err}");
     // Without the plugin: `openvino` is an error naming where it looked, `auto` the CPU provider.
     let missing = tmp.path().join("nowhere/libonnxruntime_providers_openvino_plugin.so");
     let res = run("openvino", missing.to_str());
@@ -224,8 +236,8 @@ fn openvino_runs_the_shipped_network_as_the_cpu_provider_does() {
         assert!(err.contains(part), "{part}: {err}");
     }
     assert_eq!(report(&run("auto", missing.to_str()))["device"], "cpu");
-    // With it, `auto` takes OpenVINO exactly where the CPU has AMX.
-    let expected = if mcdenoise::engine::device::cpu_has_amx_bf16() { "openvino" } else { "cpu" };
+    // With it, `auto` takes OpenVINO exactly where the CPU has native bfloat16.
+    let expected = if mcdenoise::engine::device::cpu_has_native_bf16() { "openvino" } else { "cpu" };
     assert_eq!(report(&run("auto", None))["device"], expected);
 }
 

@@ -1,15 +1,17 @@
-//! Where inference runs: `cpu`, `openvino` (the CPU through OpenVINO's execution provider,
-//! in bfloat16 on CPUs with AMX), `cuda[:N]` (ONNX Runtime's CUDA execution provider on GPU
-//! N), or `auto` (CUDA when the ONNX Runtime library has its provider and a device is
-//! visible, else OpenVINO on a CPU with AMX where its plugin is installed, else the CPU).
+//! Where inference runs: `cpu`, `openvino` (the CPU through OpenVINO, in bfloat16 on CPUs
+//! that compute it natively), `cuda[:N]` (ONNX Runtime's CUDA execution provider on GPU N),
+//! or `auto` (CUDA when the ONNX Runtime library has its provider and a device is visible,
+//! else OpenVINO on a CPU with native bfloat16 where it is installed, else the CPU).
 //!
 //! OpenVINO's execution provider is a plugin library (`onnxruntime-ep-openvino`, which
 //! carries OpenVINO's runtime) that `scripts/install-ort` puts beside ONNX Runtime's
 //! library and the engine registers with ONNX Runtime when it is asked for
-//! ([`super::runtime::register_openvino`]). On a CPU with native bfloat16 OpenVINO runs the
-//! convolutions in bfloat16 (its default there: AMX tiles on Intel Xeon since Sapphire
-//! Rapids); elsewhere in float32, where ONNX Runtime's own CPU provider is faster
-//! (docs/results/speed-work.md). A process runs one device: once OpenVINO has run in a
+//! ([`super::runtime::openvino`]); the plugin serves Intel CPUs only, so on others the
+//! engine drives the same runtime directly for the contract-v2 networks
+//! ([`super::openvino`]). On a CPU with native bfloat16 (AMX on Intel Xeon since Sapphire
+//! Rapids, AVX512-BF16 on AMD EPYC since Zen 4) OpenVINO runs the convolutions in bfloat16
+//! (its default there); elsewhere in float32, where ONNX Runtime's own CPU provider is
+//! faster (docs/results/speed-work.md). A process runs one device: once OpenVINO has run in a
 //! process, sessions of ONNX Runtime's CPU provider in the same process gave results that
 //! differ by up to 5e-4 (relative) from a process without it, so tests that compare the CPU
 //! provider's outputs keep OpenVINO out of their process.
@@ -36,8 +38,8 @@ pub enum Device {
     OpenVino,
     /// ONNX Runtime's CUDA execution provider on this GPU.
     Cuda(u32),
-    /// CUDA (GPU 0) where available, else OpenVINO on a CPU with AMX where its plugin is
-    /// installed, else the CPU.
+    /// CUDA (GPU 0) where available, else OpenVINO on a CPU with native bfloat16 where it
+    /// is installed, else the CPU.
     Auto,
 }
 
@@ -133,17 +135,23 @@ pub fn cuda_devices() -> Result<u32, String> {
     }
 }
 
-/// Whether the CPU has AMX with bfloat16 (Intel Xeon since Sapphire Rapids), where
-/// OpenVINO's bfloat16 convolutions ran the default network 2.5x as fast as ONNX Runtime's
-/// float32 ones (docs/results/speed-work.md). CPUID leaf 7: EDX bit 22 (AMX-BF16) and bit 24
-/// (AMX-TILE); the kernel's permission to use the tiles is OpenVINO's to ask for.
-pub fn cpu_has_amx_bf16() -> bool {
+/// Whether the CPU computes bfloat16 natively: AMX with bfloat16 (Intel Xeon since
+/// Sapphire Rapids), where OpenVINO's bfloat16 convolutions ran the default network 2.5x as
+/// fast as ONNX Runtime's float32 ones, or AVX512-BF16 (AMD EPYC since Zen 4, Intel Xeon
+/// since Cooper Lake), 2.2x on an AMD EPYC (docs/results/speed-work.md). CPUID leaf 7:
+/// sub-leaf 0 EDX bit 22 (AMX-BF16) and bit 24 (AMX-TILE), sub-leaf 1 EAX bit 5
+/// (AVX512-BF16); the kernel's permission to use AMX tiles is OpenVINO's to ask for.
+pub fn cpu_has_native_bf16() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
-        // Leaf 7 exists where leaf 0 reports a maximum of at least 7, checked first.
-        if std::arch::x86_64::__cpuid(0).eax >= 7 {
-            let edx = std::arch::x86_64::__cpuid_count(7, 0).edx;
-            return edx & (1 << 22) != 0 && edx & (1 << 24) != 0;
+        use std::arch::x86_64::{__cpuid, __cpuid_count};
+        // Leaf 7 exists where leaf 0 reports a maximum of at least 7, and its sub-leaf 1
+        // where sub-leaf 0's EAX reports at least 1; both checked first.
+        if __cpuid(0).eax >= 7 {
+            let leaf7 = __cpuid_count(7, 0);
+            let amx = leaf7.edx & (1 << 22) != 0 && leaf7.edx & (1 << 24) != 0;
+            let avx512_bf16 = leaf7.eax >= 1 && __cpuid_count(7, 1).eax & (1 << 5) != 0;
+            return amx || avx512_bf16;
         }
     }
     false
@@ -155,30 +163,31 @@ struct Found {
     cuda_provider: bool,
     /// What the NVIDIA driver said, asked only when the provider could use it.
     cuda_devices: Result<u32, String>,
-    /// Whether the CPU has AMX with bfloat16 ([`cpu_has_amx_bf16`]).
-    amx: bool,
+    /// Whether the CPU computes bfloat16 natively ([`cpu_has_native_bf16`]).
+    bf16: bool,
 }
 
 impl Device {
     /// The device sessions are built for once the library is loaded: `auto` becomes
     /// `cuda:0` where the library has the CUDA provider and the driver reports a GPU, else
-    /// `openvino` on a CPU with AMX where OpenVINO's plugin registers, else `cpu`;
+    /// `openvino` on a CPU with native bfloat16 where OpenVINO loads, else `cpu`;
     /// `cuda:N` without the provider, the driver or GPU N is an error naming what is
-    /// missing, and so is `openvino` without its plugin. `openvino` registers the plugin
-    /// with `env` (once per process).
+    /// missing, and so is `openvino` without OpenVINO. `openvino` registers the plugin with
+    /// `env`, or loads OpenVINO's runtime where the plugin does not serve the CPU (once per
+    /// process).
     pub fn resolve(self, env: &ort::environment::Environment, library: &str) -> Result<Device, String> {
         let cuda_provider = matches!(self, Device::Auto | Device::Cuda(_)) && cuda_provider_available();
         let found = Found {
             cuda_provider,
             // The driver is asked only when the provider could use it.
             cuda_devices: if cuda_provider { cuda_devices() } else { Ok(0) },
-            amx: cpu_has_amx_bf16(),
+            bf16: cpu_has_native_bf16(),
         };
-        self.resolve_with(library, found, || super::runtime::register_openvino(env).map(|_| ()))
+        self.resolve_with(library, found, || super::runtime::openvino(env).map(|_| ()))
     }
 
     /// [`Device::resolve`] given what was found, with `openvino` registering the plugin
-    /// (called only for `openvino`, and for `auto` on a CPU with AMX and no GPU).
+    /// (called only for `openvino`, and for `auto` on a CPU with native bfloat16 and no GPU).
     fn resolve_with(
         self,
         library: &str,
@@ -186,7 +195,7 @@ impl Device {
         openvino: impl FnOnce() -> Result<(), String>,
     ) -> Result<Device, String> {
         const INSTEAD: &str = "or choose --device cpu (or auto)";
-        let Found { cuda_provider: provider, cuda_devices: devices, amx } = found;
+        let Found { cuda_provider: provider, cuda_devices: devices, bf16 } = found;
         match self {
             Device::Auto if provider && matches!(devices, Ok(n) if n > 0) => Ok(Device::Cuda(0)),
             Device::Auto => {
@@ -194,14 +203,14 @@ impl Device {
                     let why = devices.map_or_else(|e| e, |_| "the NVIDIA driver reports no GPU".to_string());
                     tracing::warn!("--device auto: no GPU: {why}");
                 }
-                if !amx {
+                if !bf16 {
                     return Ok(Device::Cpu);
                 }
                 match openvino() {
                     Ok(()) => Ok(Device::OpenVino),
                     Err(e) => {
                         tracing::warn!(
-                            "--device auto: this CPU has AMX, but OpenVINO's plugin is not available ({e}); \
+                            "--device auto: this CPU computes bfloat16, but OpenVINO is not available ({e}); \
                              running on ONNX Runtime's CPU provider"
                         );
                         Ok(Device::Cpu)
@@ -262,8 +271,8 @@ mod tests {
     fn devices_resolve_from_the_provider_and_the_driver() {
         let lib = "/opt/lib/libonnxruntime.so.1.31.1";
         let no_driver = || Err("the NVIDIA driver library libcuda.so.1 cannot be loaded (not found)".to_string());
-        let found = |cuda_provider, cuda_devices| Found { cuda_provider, cuda_devices, amx: false };
-        let no_openvino = || -> Result<(), String> { panic!("OpenVINO asked for on a CPU without AMX") };
+        let found = |cuda_provider, cuda_devices| Found { cuda_provider, cuda_devices, bf16: false };
+        let no_openvino = || -> Result<(), String> { panic!("OpenVINO asked for on a CPU without native bfloat16") };
         // auto: CUDA only with the provider and a GPU.
         assert_eq!(Device::Auto.resolve_with(lib, found(true, Ok(2)), no_openvino), Ok(Device::Cuda(0)));
         for (provider, devices) in [(false, Ok(0)), (true, Ok(0)), (true, no_driver())] {
@@ -286,20 +295,20 @@ mod tests {
     }
 
     #[test]
-    fn openvino_is_chosen_on_a_cpu_with_amx_where_its_plugin_registers() {
+    fn openvino_is_chosen_on_a_cpu_with_native_bf16_where_it_loads() {
         let lib = "/opt/lib/libonnxruntime.so.1.31.1";
-        let amx = |amx| Found { cuda_provider: false, cuda_devices: Ok(0), amx };
+        let bf16 = |bf16| Found { cuda_provider: false, cuda_devices: Ok(0), bf16 };
         let missing = || Err("OpenVINO's execution provider plugin not found (looked for /x/openvino)".to_string());
-        // auto: OpenVINO with AMX and the plugin; the CPU provider without either.
-        assert_eq!(Device::Auto.resolve_with(lib, amx(true), || Ok(())), Ok(Device::OpenVino));
-        assert_eq!(Device::Auto.resolve_with(lib, amx(true), missing), Ok(Device::Cpu));
-        assert_eq!(Device::Auto.resolve_with(lib, amx(false), || Ok(())), Ok(Device::Cpu));
+        // auto: OpenVINO with native bfloat16 and OpenVINO installed; the CPU provider without either.
+        assert_eq!(Device::Auto.resolve_with(lib, bf16(true), || Ok(())), Ok(Device::OpenVino));
+        assert_eq!(Device::Auto.resolve_with(lib, bf16(true), missing), Ok(Device::Cpu));
+        assert_eq!(Device::Auto.resolve_with(lib, bf16(false), || Ok(())), Ok(Device::Cpu));
         // A GPU comes first.
-        let gpu = Found { cuda_provider: true, cuda_devices: Ok(1), amx: true };
+        let gpu = Found { cuda_provider: true, cuda_devices: Ok(1), bf16: true };
         assert_eq!(Device::Auto.resolve_with(lib, gpu, || Ok(())), Ok(Device::Cuda(0)));
         // openvino asked for by name: on any CPU, an error naming what is missing without the plugin.
-        assert_eq!(Device::OpenVino.resolve_with(lib, amx(false), || Ok(())), Ok(Device::OpenVino));
-        let err = Device::OpenVino.resolve_with(lib, amx(true), missing).unwrap_err();
+        assert_eq!(Device::OpenVino.resolve_with(lib, bf16(false), || Ok(())), Ok(Device::OpenVino));
+        let err = Device::OpenVino.resolve_with(lib, bf16(true), missing).unwrap_err();
         assert!(err.starts_with("--device openvino: OpenVINO's execution provider plugin not found"), "{err}");
         assert!(err.contains("--device cpu"), "{err}");
         assert_eq!("openvino".parse::<Device>(), Ok(Device::OpenVino));

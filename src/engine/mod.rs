@@ -19,6 +19,7 @@ pub mod exposure;
 pub mod fireflies;
 pub mod model;
 pub mod multiscale;
+pub mod openvino;
 pub mod preprocess;
 pub mod reconstruct;
 pub mod runtime;
@@ -141,17 +142,35 @@ pub const DEFAULT_TILE_V2: usize = 768;
 /// the bound applies to larger frames only (docs/results/speed-work.md).
 pub const DEFAULT_REGION_PIXELS: usize = 896 * 768;
 
-/// The same with OpenVINO (`--device openvino`): 768 × 750. Its working memory for a
-/// region is larger than ONNX Runtime's CPU provider's (`mcdenoise run`, 2 threads, Intel
-/// Xeon with AMX, the bench frame tiled into 3840×2160: peak 1.58–1.59 GB with 896 × 768
-/// regions, 1.39 GB with these, at the same speed; 1920×1080 1.12 → 0.97 GB, 10 % slower;
-/// 1280×720's two regions are under both bounds, 1.0 GB).
-pub const OPENVINO_REGION_PIXELS: usize = 768 * 750;
+/// The same with OpenVINO through its ONNX Runtime plugin (`--device openvino` on an Intel
+/// CPU): 540,000. Its working memory for a region is larger than ONNX Runtime's CPU
+/// provider's (`mcdenoise run`, 2 threads, Intel Xeon with AMX, the bench frame tiled into
+/// 3840×2160: peak 1.58–1.59 GB with 896 × 768 regions, 1.38–1.39 GB with this bound's 40,
+/// at the same speed; 1920×1080 1.12 → 0.97 GB in 8 regions). A 1280×720 frame runs as
+/// four regions of 768 × 488 instead of two of 768 × 720: peak 1.0 → 0.70 GB, and a
+/// one-frame process faster (median 1.84 → 1.09 s over six alternated runs), its fresh
+/// memory fewer pages for the kernel to fault in (docs/results/speed-work.md). Any bound
+/// from 506,368 (4K's regions) up to 552,959 cuts these three sizes alike.
+pub const OPENVINO_REGION_PIXELS: usize = 540_000;
 
-/// The region bound where none is given: [`OPENVINO_REGION_PIXELS`] with OpenVINO, else
+/// The same with OpenVINO's runtime driven directly (`--device openvino` on other CPUs,
+/// [`runtime::OpenVino::Runtime`]): 576,000, which keeps 1280×720 in two regions of
+/// 768 × 720 and cuts 1080p and 4K as [`OPENVINO_REGION_PIXELS`] does. On an AMD EPYC
+/// (Zen 4, 2 threads) four regions made a one-frame process slower, not faster: medians
+/// over eight alternated runs 1.75 s against 1.54 s for two (each region shape's first run
+/// costs OpenVINO 0.15–0.25 s more than the next, and four regions compute 1.47 M pixels
+/// against 1.11 M); 4K peaked at 1.37 GB in 40 regions and 1.55 GB in 28
+/// (docs/results/speed-work.md).
+pub const OPENVINO_RUNTIME_REGION_PIXELS: usize = 576_000;
+
+/// The region bound where none is given: [`OPENVINO_REGION_PIXELS`] or
+/// [`OPENVINO_RUNTIME_REGION_PIXELS`] with OpenVINO, as it is reached, else
 /// [`DEFAULT_REGION_PIXELS`].
 pub fn default_region_pixels(device: Device) -> usize {
     match device {
+        Device::OpenVino if runtime::openvino_route() == Some(runtime::OpenVino::Runtime) => {
+            OPENVINO_RUNTIME_REGION_PIXELS
+        }
         Device::OpenVino => OPENVINO_REGION_PIXELS,
         Device::Cpu | Device::Cuda(_) | Device::Auto => DEFAULT_REGION_PIXELS,
     }
@@ -1044,6 +1063,38 @@ mod tests {
         }
         let unbounded = Tiling { region_pixels: usize::MAX, ..t };
         assert_eq!(unbounded.cores(3840, 2160).len(), 15);
+    }
+
+    #[test]
+    fn openvinos_bound_cuts_720p_in_four_and_larger_frames_as_measured() {
+        // OPENVINO_REGION_PIXELS's doc: 720p in 2 × 2 regions (not 2 × 1), 1080p in 8,
+        // 4K in 40, for any bound of its stated range.
+        for region_pixels in [506_368, OPENVINO_REGION_PIXELS, 552_959] {
+            let t = Tiling { region_pixels, ..default_tiling() };
+            for ((w, h), n) in [((1280, 720), 4), ((1920, 1080), 8), ((3840, 2160), 40)] {
+                let cores = t.cores(w, h);
+                assert_eq!(cores.len(), n, "{w}×{h} with {region_pixels}");
+                assert!(check(&t, w, h, &cores) <= region_pixels);
+            }
+        }
+        let above = Tiling { region_pixels: 552_960, ..default_tiling() };
+        assert_eq!(above.cores(1280, 720).len(), 2);
+        let below = Tiling { region_pixels: 506_367, ..default_tiling() };
+        assert!(below.cores(3840, 2160).len() > 40);
+    }
+
+    #[test]
+    fn openvinos_runtime_bound_keeps_720p_in_two_and_cuts_larger_frames_alike() {
+        // OPENVINO_RUNTIME_REGION_PIXELS's doc: 720p in 2 regions, 1080p and 4K as with the
+        // plugin's bound.
+        for region_pixels in [552_960, OPENVINO_RUNTIME_REGION_PIXELS] {
+            let t = Tiling { region_pixels, ..default_tiling() };
+            for ((w, h), n) in [((1280, 720), 2), ((1920, 1080), 8), ((3840, 2160), 40)] {
+                let cores = t.cores(w, h);
+                assert_eq!(cores.len(), n, "{w}×{h} with {region_pixels}");
+                assert!(check(&t, w, h, &cores) <= region_pixels);
+            }
+        }
     }
 
     #[test]

@@ -129,11 +129,19 @@ pub fn build_session(env: &ort::environment::Environment, path: &Path, placement
             .with_device_id(i32::try_from(n).unwrap_or(i32::MAX))
             .build()
             .error_on_failure()])?,
-        Device::OpenVino => {
-            let options = [(format!("{}.load_config", super::runtime::OPENVINO_EP), openvino_config(threads)?)];
+        // Where OpenVINO's plugin does not serve the CPU, the session is ONNX Runtime's CPU
+        // provider's (a contract-v2 network is then compiled by OpenVINO directly).
+        Device::OpenVino if super::runtime::openvino_route() == Some(super::runtime::OpenVino::Plugin) => {
+            let cpu: serde_json::Map<String, serde_json::Value> = openvino_properties(threads)
+                .map_err(ort::Error::new)?
+                .into_iter()
+                .map(|(k, v)| (k, serde_json::Value::String(v)))
+                .collect();
+            let config = serde_json::json!({ "CPU": cpu }).to_string();
+            let options = [(format!("{}.load_config", super::runtime::OPENVINO_EP), config)];
             builder.with_devices(super::runtime::openvino_cpu(env), Some(&options))?
         }
-        Device::Cpu | Device::Auto => builder,
+        Device::OpenVino | Device::Cpu | Device::Auto => builder,
     };
     builder
         // Memory patterns are planned per input shape and kept: with tiles of several shapes
@@ -149,19 +157,19 @@ pub fn build_session(env: &ort::environment::Environment, path: &Path, placement
         .commit_from_file(path)
 }
 
-/// OpenVINO's CPU properties for a session (its `load_config`): its thread count (it runs
-/// its own pool), one stream for one request at a time, and its default precision
-/// (bfloat16 where the CPU has it natively, else float32); `$MCDENOISE_OPENVINO_CONFIG`, a
-/// JSON object of further CPU properties (`{"INFERENCE_PRECISION_HINT": "f32"}`), is laid
-/// over them.
-fn openvino_config(threads: usize) -> ort::Result<String> {
-    let mut cpu = serde_json::json!({
-        "INFERENCE_NUM_THREADS": threads.to_string(),
-        "NUM_STREAMS": "1",
-        "PERFORMANCE_HINT": "LATENCY",
-    });
+/// OpenVINO's CPU properties for a network (the plugin's `load_config`, or the core's
+/// before OpenVINO compiles it): its thread count (it runs its own pool), one stream for
+/// one request at a time, and its default precision (bfloat16 where the CPU has it
+/// natively, else float32); `$MCDENOISE_OPENVINO_CONFIG`, a JSON object of further CPU
+/// properties (`{"INFERENCE_PRECISION_HINT": "f32"}`), is laid over them.
+fn openvino_properties(threads: usize) -> Result<Vec<(String, String)>, String> {
+    let mut cpu = vec![
+        ("INFERENCE_NUM_THREADS".to_string(), threads.to_string()),
+        ("NUM_STREAMS".to_string(), "1".to_string()),
+        ("PERFORMANCE_HINT".to_string(), "LATENCY".to_string()),
+    ];
     if let Some(extra) = std::env::var("MCDENOISE_OPENVINO_CONFIG").ok().filter(|v| !v.trim().is_empty()) {
-        let bad = |why: &str| ort::Error::new(format!("MCDENOISE_OPENVINO_CONFIG: {why} (got `{extra}`)"));
+        let bad = |why: &str| format!("MCDENOISE_OPENVINO_CONFIG: {why} (got `{extra}`)");
         let serde_json::Value::Object(extra) = serde_json::from_str(&extra).map_err(|e| bad(&e.to_string()))? else {
             return Err(bad("expected a JSON object of OpenVINO CPU properties"));
         };
@@ -170,10 +178,11 @@ fn openvino_config(threads: usize) -> ort::Result<String> {
                 serde_json::Value::String(s) => s,
                 other => other.to_string(),
             };
-            cpu[key] = serde_json::Value::String(value);
+            cpu.retain(|(k, _)| *k != key);
+            cpu.push((key, value));
         }
     }
-    Ok(serde_json::json!({ "CPU": cpu }).to_string())
+    Ok(cpu)
 }
 
 /// A model file opened in a session, with its metadata read.
@@ -358,13 +367,26 @@ impl Network {
 
 /// A contract-v2 graph: both components, kernels at several scales, in one session.
 pub struct MultiScaleNetwork {
-    session: Session,
+    runner: Runner,
     pub info: ModelInfo,
     /// Region sides must be multiples of this (2^(levels − 1)).
     pub size_multiple: usize,
-    /// With I/O binding ([`IoBinding`]), where the tensors are placed, and those of the last
-    /// region shape; `None` without.
-    binding: Option<Binding>,
+}
+
+/// What runs a [`MultiScaleNetwork`].
+enum Runner {
+    /// An ONNX Runtime session; with I/O binding ([`IoBinding`]), where the tensors are
+    /// placed and those of the last region shape (`None` without).
+    Ort { session: Session, binding: Option<Binding> },
+    /// OpenVINO's runtime directly (`--device openvino` where its plugin does not serve
+    /// the CPU: [`super::runtime::OpenVino::Runtime`]).
+    OpenVino(super::openvino::Compiled),
+}
+
+/// One region's outputs, from either runner.
+enum RegionOutputs<'a> {
+    Ort(ort::session::SessionOutputs<'a>),
+    OpenVino(super::openvino::Outputs),
 }
 
 /// The I/O binding of a [`MultiScaleNetwork`]: the memory its tensors live in (page-locked
@@ -521,14 +543,24 @@ impl MultiScaleNetwork {
             specular_pyramid,
             detail_gains,
         };
-        let binding = if placement.io_binding.enabled() {
+        let direct = placement.device == Device::OpenVino
+            && super::runtime::openvino_route() == Some(super::runtime::OpenVino::Runtime);
+        let runner = if direct {
+            // ONNX Runtime's session has checked the graph against the contract; OpenVINO
+            // compiles the same file and runs it.
+            let outputs = expected_outputs.into_iter().map(|(name, _)| name).collect();
+            let properties = openvino_properties(placement.threads.max(1)).map_err(|e| model_error(path, e))?;
+            let compiled = super::openvino::Compiled::new(path, &properties, outputs)
+                .map_err(|e| model_error(path, format!("cannot load with OpenVINO: {e}")))?;
+            Runner::OpenVino(compiled)
+        } else if placement.io_binding.enabled() {
             let binding = Binding::new(placement.device)
                 .map_err(|e| model_error(path, format!("cannot set up ONNX Runtime's I/O binding: {e}")))?;
-            Some(binding)
+            Runner::Ort { session: model.session, binding: Some(binding) }
         } else {
-            None
+            Runner::Ort { session: model.session, binding: None }
         };
-        Ok(MultiScaleNetwork { session: model.session, info, size_multiple, binding })
+        Ok(MultiScaleNetwork { runner, info, size_multiple })
     }
 
     /// Runs the graph on one region (sides multiples of `size_multiple`; `diffuse` and
@@ -606,26 +638,35 @@ impl MultiScaleNetwork {
         features: &[f32],
         h: usize,
         w: usize,
-    ) -> Result<ort::session::SessionOutputs<'_>, EngineError> {
+    ) -> Result<RegionOutputs<'_>, EngineError> {
         let c = features.len() / (h * w);
         let name = self.info.variant;
         let fail = |e: ort::Error| EngineError::Inference(format!("{name}: {e}"));
+        let (session, binding) = match &mut self.runner {
+            Runner::Ort { session, binding } => (session, binding),
+            Runner::OpenVino(compiled) => {
+                return compiled
+                    .run([diffuse, specular, features], [c, h, w])
+                    .map(RegionOutputs::OpenVino)
+                    .map_err(|e| EngineError::Inference(format!("{name}: {e}")))
+            }
+        };
         // Bound runs on a GPU take turns across the process's workers (see `BOUND_RUNS`).
-        let _turn = self
-            .binding
+        let _turn = binding
             .as_ref()
             .filter(|b| b.take_turns)
             .map(|_| BOUND_RUNS.lock().unwrap_or_else(std::sync::PoisonError::into_inner));
-        if let Some(binding) = &mut self.binding {
-            bind(&self.session, binding, [diffuse, specular, features], [c, h, w]).map_err(fail)?;
+        if let Some(binding) = binding {
+            bind(session, binding, [diffuse, specular, features], [c, h, w]).map_err(fail)?;
             let bound = binding.bound.as_ref().expect("bound by `bind`");
-            return self.session.run_binding(&bound.io).map_err(fail);
+            return session.run_binding(&bound.io).map(RegionOutputs::Ort).map_err(fail);
         }
         let diffuse = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], diffuse)).map_err(fail)?;
         let specular = TensorRef::from_array_view(([1usize, COLOR_CHANNELS, h, w], specular)).map_err(fail)?;
         let features = TensorRef::from_array_view(([1usize, c, h, w], features)).map_err(fail)?;
-        self.session
+        session
             .run(ort::inputs!["diffuse" => diffuse, "specular" => specular, "features" => features])
+            .map(RegionOutputs::Ort)
             .map_err(fail)
     }
 }
@@ -661,16 +702,22 @@ fn bind(session: &Session, binding: &mut Binding, data: [&[f32]; 3], dims: [usiz
 /// The data of output `output`, checked to be `[1, channels, rows, columns]` (`dims`) for a
 /// `region` = (w, h) region.
 fn extract<'a>(
-    outputs: &'a ort::session::SessionOutputs<'_>,
+    outputs: &'a RegionOutputs<'_>,
     variant: Variant,
     output: &str,
     dims: [usize; 3],
     region: (usize, usize),
 ) -> Result<&'a [f32], EngineError> {
-    let (shape, data) =
-        outputs[output].try_extract_tensor::<f32>().map_err(|e| EngineError::Inference(format!("{variant}: {e}")))?;
+    let fail = |e: String| EngineError::Inference(format!("{variant}: {e}"));
+    let (shape, data): (Vec<i64>, &[f32]) = match outputs {
+        RegionOutputs::Ort(outputs) => {
+            let (shape, data) = outputs[output].try_extract_tensor::<f32>().map_err(|e| fail(e.to_string()))?;
+            (shape.iter().copied().collect(), data)
+        }
+        RegionOutputs::OpenVino(outputs) => outputs.get(output).map_err(fail)?,
+    };
     let want = [1, dims[0] as i64, dims[1] as i64, dims[2] as i64];
-    if shape.iter().copied().collect::<Vec<i64>>() != want {
+    if shape != want {
         let (w, h) = region;
         return Err(EngineError::Inference(format!(
             "{variant}: output `{output}` has shape {shape:?}, expected {want:?} for a {w}x{h} region"

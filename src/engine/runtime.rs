@@ -14,7 +14,7 @@ pub const ORT_VERSION: &str = "1.31.1";
 
 static ENVIRONMENT: OnceLock<Result<Environment, String>> = OnceLock::new();
 static LIBRARY: OnceLock<PathBuf> = OnceLock::new();
-static OPENVINO: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+static OPENVINO: OnceLock<Result<OpenVino, String>> = OnceLock::new();
 
 /// The file name of OpenVINO's execution provider plugin (`onnxruntime-ep-openvino`), which
 /// `scripts/install-ort` puts, with the OpenVINO runtime it carries, in an `openvino`
@@ -78,11 +78,34 @@ pub fn openvino_candidates() -> Vec<PathBuf> {
     out
 }
 
+/// How `--device openvino` reaches OpenVINO in this process ([`openvino`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OpenVino {
+    /// Through ONNX Runtime's plugin, which offers the CPU (an Intel CPU): every network's
+    /// session runs on it.
+    Plugin,
+    /// OpenVINO's runtime driven directly (a CPU the plugin does not serve): the
+    /// contract-v2 networks are compiled by it, the others run on ONNX Runtime's CPU
+    /// provider (`super::openvino`).
+    Runtime,
+}
+
 /// Registers OpenVINO's execution provider plugin with `env` (once per process; later calls
-/// return the first answer) and checks that it offers the CPU; returns the plugin's path.
-pub fn register_openvino(env: &Environment) -> Result<&'static Path, String> {
+/// return the first answer): [`OpenVino::Plugin`] where it offers the CPU, else OpenVINO's
+/// runtime from the plugin's directory is loaded for [`OpenVino::Runtime`].
+/// `$MCDENOISE_OPENVINO_VIA` (`plugin` or `runtime`) takes one of the two on any CPU.
+pub fn openvino(env: &Environment) -> Result<OpenVino, String> {
     OPENVINO
         .get_or_init(|| {
+            let via = std::env::var("MCDENOISE_OPENVINO_VIA").unwrap_or_default();
+            let via = match via.trim() {
+                "" | "auto" => None,
+                "plugin" => Some(OpenVino::Plugin),
+                "runtime" => Some(OpenVino::Runtime),
+                other => {
+                    return Err(format!("MCDENOISE_OPENVINO_VIA is `{other}`, expected `plugin`, `runtime` or `auto`"))
+                }
+            };
             let tried = openvino_candidates();
             let Some(path) = tried.iter().find(|p| p.is_file()) else {
                 return Err(format!(
@@ -91,16 +114,28 @@ pub fn register_openvino(env: &Environment) -> Result<&'static Path, String> {
                     tried.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")
                 ));
             };
+            let dir = path.parent().unwrap_or(Path::new("."));
+            if via == Some(OpenVino::Runtime) {
+                return super::openvino::load(dir).map(|_| OpenVino::Runtime);
+            }
             env.register_ep_library("openvino", path)
                 .map_err(|e| format!("cannot register OpenVINO's plugin {}: {e}", path.display()))?;
-            if openvino_cpu(env).next().is_none() {
-                return Err(format!("OpenVINO's plugin {} offers no CPU device", path.display()));
+            if openvino_cpu(env).next().is_some() {
+                return Ok(OpenVino::Plugin);
             }
-            Ok(path.clone())
+            let no_cpu = format!("OpenVINO's plugin {} offers no CPU device (it serves Intel CPUs only)", path.display());
+            if via == Some(OpenVino::Plugin) {
+                return Err(no_cpu);
+            }
+            // OpenVINO's runtime beside the plugin serves the rest of the x86-64 CPUs.
+            super::openvino::load(dir).map(|_| OpenVino::Runtime).map_err(|e| format!("{no_cpu}, and {e}"))
         })
-        .as_ref()
-        .map(PathBuf::as_path)
-        .map_err(Clone::clone)
+        .clone()
+}
+
+/// How [`openvino`] reached OpenVINO, once it has.
+pub fn openvino_route() -> Option<OpenVino> {
+    OPENVINO.get().and_then(|r| r.as_ref().ok()).copied()
 }
 
 /// The CPU devices OpenVINO's plugin offers, once registered.
