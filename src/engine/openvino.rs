@@ -61,12 +61,13 @@ pub fn load(dir: &Path) -> Result<&'static Path, String> {
 }
 
 /// A contract-v2 graph compiled by OpenVINO for the CPU, with its request and the input
-/// tensors of the last region shape (reused while the shape repeats).
+/// tensors of the last region shape (reused while the shape repeats). The fields drop in
+/// order: the tensors, then the request, then the compiled model.
 pub struct Compiled {
-    _model: CompiledModel,
+    inputs: Option<([usize; 3], [Tensor; 3])>,
     request: InferRequest,
     outputs: Vec<String>,
-    inputs: Option<([usize; 3], [Tensor; 3])>,
+    _model: CompiledModel,
 }
 
 /// The graph's inputs, in the order [`Compiled::run`] takes their data.
@@ -87,7 +88,7 @@ impl Compiled {
         let mut compiled =
             core.compile_model(&model, DeviceType::CPU).map_err(|e| format!("OpenVINO cannot compile it: {e}"))?;
         let request = compiled.create_infer_request().map_err(|e| format!("OpenVINO's request: {e}"))?;
-        Ok(Compiled { _model: compiled, request, outputs, inputs: None })
+        Ok(Compiled { inputs: None, request, outputs, _model: compiled })
     }
 
     /// Runs one region: `data` are the inputs' values (`[10, h, w]`, `[10, h, w]`, `dims` =
