@@ -242,7 +242,10 @@ def test_a_read_only_file_system_never_reverses_a_final_state(tmp_path):
     # beside it keeps its file open for writing, which a read-only remount does not allow).
     data = tmp_path / "data"
     with tmpfs(data / "jobs", "48m") as jobs:
-        d = Daemon(tmp_path / "d", *SLOW, data=data)
+        # The running job must outlast the remount, which waits while a write holds the file
+        # system busy: with SLOW's 150 ms a job could finish first (seen once in CI) and the
+        # next one start, so its tile takes 2 s here.
+        d = Daemon(tmp_path / "d", "--debug-tile-delay", "2s", "--storage-check-interval", "300ms", data=data)
         running, queued, cancelled = submit_ok(d), submit_ok(d), submit_ok(d)
         wait_for("the first job running", lambda: state(d, running) == "running")
         assert request(d, "POST", f"/v1/jobs/{cancelled}/cancel")[0] == 200
