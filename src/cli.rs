@@ -278,6 +278,11 @@ pub fn run(args: RunArgs) -> Result<()> {
         "io_binding": contract == 2 && config.io_binding.enabled(),
         "threads": config.threads,
         "device": engine.device().to_string(),
+        // With `openvino`, how OpenVINO was reached: `plugin` (ONNX Runtime's, Intel CPUs) or
+        // `runtime` (OpenVINO's own, driven directly); null on other devices.
+        "openvino_via": engine::runtime::openvino_route()
+            .filter(|_| engine.device() == engine::Device::OpenVino)
+            .map(|r| format!("{r:?}").to_lowercase()),
         "flops_per_pixel": flops,
         "sanitized": out.sanitized,
         "missing_variances": out.missing_variances,

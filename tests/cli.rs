@@ -211,6 +211,10 @@ fn openvino_runs_the_shipped_network_as_the_cpu_provider_does() {
     for via in ["auto", "runtime"] {
         let openvino = report(&run_via("openvino", None, via));
         assert_eq!((cpu["device"].as_str(), openvino["device"].as_str()), (Some("cpu"), Some("openvino")));
+        assert!(cpu["openvino_via"].is_null(), "{cpu}");
+        // `auto` takes the plugin on an Intel CPU and the runtime elsewhere; `runtime` always.
+        let taken = openvino["openvino_via"].as_str().unwrap_or_default();
+        assert!(if via == "runtime" { taken == "runtime" } else { ["plugin", "runtime"].contains(&taken) }, "{taken}");
         for metric in ["relmse", "dssim"] {
             let (a, b) = (
                 cpu["metrics"]["output"][metric].as_f64().unwrap(),
