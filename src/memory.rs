@@ -37,19 +37,21 @@ fn tune_allocator() {}
 /// gives huge pages only to regions that ask for them (`madvise`, the usual default), a
 /// frame's planes, the network's tensors and ONNX Runtime's arena are otherwise faulted in
 /// 4 KB at a time: about 185,000 page faults for a 720p frame. glibc reads its tunables only
-/// when a process starts, so the process starts itself again, once, with the tunable added
-/// to `GLIBC_TUNABLES`; it does not when the tunable is set already (by this or by the
-/// operator), when `MCDENOISE_HUGE_PAGES=off`, or when the kernel's mode is `always` (every
-/// process has them) or `never`. `mcdenoise run` at 720p, 2 threads, the two alternated ten
-/// times: median 2.98 → 2.66 s (faster in 9 of 10 pairs), kernel time 0.77 → 0.58 s, page
-/// faults 185,000 → 22,000, the same peak memory; 3840×2160 twice: 36.4 / 27.6 s → 30.8 /
-/// 24.7 s, peak 1.47 / 1.47 → 1.48 / 1.47 GB (docs/results/speed-work.md).
+/// when a process starts, so with `MCDENOISE_HUGE_PAGES=on` the process starts itself again,
+/// once, with the tunable added to `GLIBC_TUNABLES`; it does not when the tunable is set
+/// already (by this or by the operator), or when the kernel's mode is `always` (every
+/// process has them) or `never`. Asked for, not by default: on a fresh machine `mcdenoise
+/// run` at 720p (2 threads, ten alternated pairs) took 2.98 → 2.66 s with them, but where
+/// the machine's memory is fragmented the kernel compacts it on each fault of an advised
+/// region (`defrag` `madvise`, the usual default): on an AMD EPYC after two CI runs, eight
+/// alternated runs each, median 1.94 s without and 3.68 s (1.62–7.07) with, kernel time
+/// 0.6–0.8 against 1.3–2.2 s a run (docs/results/speed-work.md).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn use_huge_pages() {
     use std::os::unix::process::CommandExt;
 
     const TUNABLE: &str = "glibc.malloc.hugetlb";
-    if std::env::var_os("MCDENOISE_HUGE_PAGES").is_some_and(|v| v == "off") {
+    if !std::env::var_os("MCDENOISE_HUGE_PAGES").is_some_and(|v| v == "on") {
         return;
     }
     let tunables = std::env::var("GLIBC_TUNABLES").unwrap_or_default();

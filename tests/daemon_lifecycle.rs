@@ -401,14 +401,19 @@ fn daemon_tunables(adjust: impl FnOnce(&mut Command)) -> Option<String> {
 
 #[test]
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn the_daemon_asks_for_huge_pages_where_the_kernel_gives_them_on_request() {
+fn the_daemon_asks_for_huge_pages_when_told_to_where_the_kernel_gives_them_on_request() {
     let mode = std::fs::read_to_string("/sys/kernel/mm/transparent_hugepage/enabled").unwrap_or_default();
     let on_request = mode.contains("[madvise]");
-    let plain = daemon_tunables(|c| {
+    // By default the process starts as it is.
+    let default = daemon_tunables(|c| {
         c.env_remove("GLIBC_TUNABLES").env_remove("MCDENOISE_HUGE_PAGES");
     });
+    assert_eq!(default, None);
+    let plain = daemon_tunables(|c| {
+        c.env_remove("GLIBC_TUNABLES").env("MCDENOISE_HUGE_PAGES", "on");
+    });
     let others = daemon_tunables(|c| {
-        c.env("GLIBC_TUNABLES", "glibc.malloc.arena_max=4").env_remove("MCDENOISE_HUGE_PAGES");
+        c.env("GLIBC_TUNABLES", "glibc.malloc.arena_max=4").env("MCDENOISE_HUGE_PAGES", "on");
     });
     if on_request {
         assert_eq!(plain.as_deref(), Some("glibc.malloc.hugetlb=1"));
@@ -420,7 +425,7 @@ fn the_daemon_asks_for_huge_pages_where_the_kernel_gives_them_on_request() {
     }
     // The operator's own choice, and the switch, are left as they are.
     let chosen = daemon_tunables(|c| {
-        c.env("GLIBC_TUNABLES", "glibc.malloc.hugetlb=0").env_remove("MCDENOISE_HUGE_PAGES");
+        c.env("GLIBC_TUNABLES", "glibc.malloc.hugetlb=0").env("MCDENOISE_HUGE_PAGES", "on");
     });
     assert_eq!(chosen.as_deref(), Some("glibc.malloc.hugetlb=0"));
     let off = daemon_tunables(|c| {
