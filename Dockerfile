@@ -106,5 +106,6 @@ ENV LD_LIBRARY_PATH=/opt/mcdenoise/lib \
 FROM runtime AS cpu
 COPY --from=ort /out/lib/libonnxruntime.so.1.31.1 /opt/mcdenoise/lib/
 # OpenVINO's execution provider plugin and runtime (91 MB): `--device auto` runs the
-# networks through it in bfloat16 on CPUs with AMX or AVX512-BF16 (docs/api.md, `--device`).
+# networks through it in bfloat16 on CPUs with AMX, and AMD CPUs with AVX512-BF16
+# (docs/api.md, `--device`).
 COPY --from=ort /out/lib/openvino/ /opt/mcdenoise/lib/openvino/

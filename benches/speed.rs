@@ -240,7 +240,7 @@ fn engine_section(a: &Args, e: &mut Engine, exr: &[u8], w: usize, h: usize, gemm
         "width": w, "height": h, "variant": variant, "tile": a.tile, "tile_v2": a.tile_v2, "threads": a.threads, "runs": a.runs,
         "device": e.device().to_string(),
         // How OpenVINO was reached (`plugin` or `runtime`, src/engine/runtime.rs), where it runs.
-        "openvino_via": mcdenoise::engine::runtime::openvino_route().map(|r| format!("{r:?}").to_lowercase()),
+        "openvino_via": mcdenoise::engine::runtime::openvino_route().map(|r| r.name()),
         "flops_per_frame": flops,
         "ort_alone_s": floor_s,
         "ort_alone_gflops": flops / floor_s / 1e9,

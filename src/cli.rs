@@ -123,8 +123,8 @@ pub struct RunArgs {
     /// through OpenVINO, in bfloat16 where the CPU has it: its ONNX Runtime plugin on Intel
     /// CPUs, its runtime directly on others), `cuda` or `cuda:N` (ONNX Runtime's CUDA
     /// execution provider, from the GPU build of ONNX Runtime), or `auto`: CUDA where
-    /// available, else `openvino` on a CPU with native bfloat16 (AMX or AVX512-BF16), else
-    /// `cpu`.
+    /// available, else `openvino` on a CPU where its bfloat16 is the faster (AMX, or
+    /// AVX512-BF16 on AMD), else `cpu`.
     #[arg(long, env = "MCDENOISE_DEVICE", default_value = "auto", value_parser = parse_device)]
     pub device: engine::Device,
     /// Where contract-v2 kernels are applied: `engine` (the engine's own code, on the CPU),
@@ -282,7 +282,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         // `runtime` (OpenVINO's own, driven directly); null on other devices.
         "openvino_via": engine::runtime::openvino_route()
             .filter(|_| engine.device() == engine::Device::OpenVino)
-            .map(|r| format!("{r:?}").to_lowercase()),
+            .map(|r| r.name()),
         "flops_per_pixel": flops,
         "sanitized": out.sanitized,
         "missing_variances": out.missing_variances,

@@ -1,7 +1,8 @@
 //! Where inference runs: `cpu`, `openvino` (the CPU through OpenVINO, in bfloat16 on CPUs
 //! that compute it natively), `cuda[:N]` (ONNX Runtime's CUDA execution provider on GPU N),
 //! or `auto` (CUDA when the ONNX Runtime library has its provider and a device is visible,
-//! else OpenVINO on a CPU with native bfloat16 where it is installed, else the CPU).
+//! else OpenVINO where its bfloat16 is the faster (AMX, or AVX512-BF16 on AMD) and it is
+//! installed, else the CPU).
 //!
 //! OpenVINO's execution provider is a plugin library (`onnxruntime-ep-openvino`, which
 //! carries OpenVINO's runtime) that `scripts/install-ort` puts beside ONNX Runtime's
@@ -9,9 +10,11 @@
 //! ([`super::runtime::openvino`]); the plugin serves Intel CPUs only, so on others the
 //! engine drives the same runtime directly for the contract-v2 networks
 //! ([`super::openvino`]). On a CPU with native bfloat16 (AMX on Intel Xeon since Sapphire
-//! Rapids, AVX512-BF16 on AMD EPYC since Zen 4) OpenVINO runs the convolutions in bfloat16
-//! (its default there); elsewhere in float32, where ONNX Runtime's own CPU provider is
-//! faster (docs/results/speed-work.md). A process runs one device: once OpenVINO has run in a
+//! Rapids, AVX512-BF16 on Intel Xeon since Cooper Lake and AMD EPYC since Zen 4) OpenVINO
+//! runs the convolutions in bfloat16 (its default there); elsewhere in float32, where ONNX
+//! Runtime's own CPU provider is faster (docs/results/speed-work.md). `auto` takes it only
+//! where it was measured faster than the CPU provider ([`CpuBf16::openvino_pays`]): with
+//! AMX, and with AVX512-BF16 on AMD, not with AVX512-BF16 alone on an Intel Xeon. A process runs one device: once OpenVINO has run in a
 //! process, sessions of ONNX Runtime's CPU provider in the same process gave results that
 //! differ by up to 5e-4 (relative) from a process without it, so tests that compare the CPU
 //! provider's outputs keep OpenVINO out of their process.
@@ -38,8 +41,8 @@ pub enum Device {
     OpenVino,
     /// ONNX Runtime's CUDA execution provider on this GPU.
     Cuda(u32),
-    /// CUDA (GPU 0) where available, else OpenVINO on a CPU with native bfloat16 where it
-    /// is installed, else the CPU.
+    /// CUDA (GPU 0) where available, else OpenVINO where its bfloat16 is the faster
+    /// ([`CpuBf16::openvino_pays`]) and it is installed, else the CPU.
     Auto,
 }
 
@@ -135,26 +138,59 @@ pub fn cuda_devices() -> Result<u32, String> {
     }
 }
 
-/// Whether the CPU computes bfloat16 natively: AMX with bfloat16 (Intel Xeon since
-/// Sapphire Rapids), where OpenVINO's bfloat16 convolutions ran the default network 2.5x as
-/// fast as ONNX Runtime's float32 ones, or AVX512-BF16 (AMD EPYC since Zen 4, Intel Xeon
-/// since Cooper Lake), 2.2x on an AMD EPYC (docs/results/speed-work.md). CPUID leaf 7:
-/// sub-leaf 0 EDX bit 22 (AMX-BF16) and bit 24 (AMX-TILE), sub-leaf 1 EAX bit 5
-/// (AVX512-BF16); the kernel's permission to use AMX tiles is OpenVINO's to ask for.
-pub fn cpu_has_native_bf16() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{__cpuid, __cpuid_count};
-        // Leaf 7 exists where leaf 0 reports a maximum of at least 7, and its sub-leaf 1
-        // where sub-leaf 0's EAX reports at least 1; both checked first.
-        if __cpuid(0).eax >= 7 {
-            let leaf7 = __cpuid_count(7, 0);
-            let amx = leaf7.edx & (1 << 22) != 0 && leaf7.edx & (1 << 24) != 0;
-            let avx512_bf16 = leaf7.eax >= 1 && __cpuid_count(7, 1).eax & (1 << 5) != 0;
-            return amx || avx512_bf16;
+/// What the CPU offers OpenVINO's bfloat16 convolutions ([`CpuBf16::detect`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CpuBf16 {
+    /// AMX tiles with bfloat16 (Intel Xeon since Sapphire Rapids, where the hypervisor
+    /// passes them through).
+    pub amx: bool,
+    /// AVX512-BF16's bfloat16 dot products (Intel Xeon since Cooper Lake, AMD EPYC since
+    /// Zen 4).
+    pub avx512_bf16: bool,
+    /// The vendor is Intel (`GenuineIntel`).
+    pub intel: bool,
+}
+
+impl CpuBf16 {
+    /// Reads CPUID: leaf 0's vendor, leaf 7 sub-leaf 0 EDX bit 22 (AMX-BF16) and bit 24
+    /// (AMX-TILE), sub-leaf 1 EAX bit 5 (AVX512-BF16). The kernel's permission to use AMX
+    /// tiles is OpenVINO's to ask for.
+    pub fn detect() -> CpuBf16 {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::{__cpuid, __cpuid_count};
+            let leaf0 = __cpuid(0);
+            // "GenuineIntel" in EBX, EDX, ECX.
+            let intel = (leaf0.ebx, leaf0.edx, leaf0.ecx) == (0x756e_6547, 0x4965_6e69, 0x6c65_746e);
+            // Leaf 7 exists where leaf 0 reports a maximum of at least 7, and its sub-leaf 1
+            // where sub-leaf 0's EAX reports at least 1; both checked first.
+            if leaf0.eax >= 7 {
+                let leaf7 = __cpuid_count(7, 0);
+                let amx = leaf7.edx & (1 << 22) != 0 && leaf7.edx & (1 << 24) != 0;
+                let avx512_bf16 = leaf7.eax >= 1 && __cpuid_count(7, 1).eax & (1 << 5) != 0;
+                return CpuBf16 { amx, avx512_bf16, intel };
+            }
+            return CpuBf16 { intel, ..CpuBf16::default() };
         }
+        #[allow(unreachable_code)]
+        CpuBf16::default()
     }
-    false
+
+    /// Whether OpenVINO's bfloat16 runs the default network faster than ONNX Runtime's
+    /// float32 CPU provider here, as measured (docs/results/speed-work.md): with AMX (an
+    /// Intel Xeon, 2.5x), and with AVX512-BF16 on an AMD EPYC (Zen 4, about 1.5x). Not with
+    /// AVX512-BF16 alone on an Intel Xeon: there OpenVINO was 1.5-1.8x slower (an Emerald
+    /// Rapids virtual machine without AMX), where AVX-512's float32 already has twice Zen
+    /// 4's width per instruction.
+    pub fn openvino_pays(self) -> bool {
+        self.amx || (self.avx512_bf16 && !self.intel)
+    }
+}
+
+/// Whether `--device auto` runs the CPU networks through OpenVINO on this CPU
+/// ([`CpuBf16::openvino_pays`]).
+pub fn cpu_prefers_openvino() -> bool {
+    CpuBf16::detect().openvino_pays()
 }
 
 /// What [`Device::resolve`] found on this machine.
@@ -163,14 +199,15 @@ struct Found {
     cuda_provider: bool,
     /// What the NVIDIA driver said, asked only when the provider could use it.
     cuda_devices: Result<u32, String>,
-    /// Whether the CPU computes bfloat16 natively ([`cpu_has_native_bf16`]).
-    bf16: bool,
+    /// Whether OpenVINO's bfloat16 is the faster way to run the networks on this CPU
+    /// ([`CpuBf16::openvino_pays`]).
+    openvino_pays: bool,
 }
 
 impl Device {
     /// The device sessions are built for once the library is loaded: `auto` becomes
     /// `cuda:0` where the library has the CUDA provider and the driver reports a GPU, else
-    /// `openvino` on a CPU with native bfloat16 where OpenVINO loads, else `cpu`;
+    /// `openvino` on a CPU where its bfloat16 is the faster and OpenVINO loads, else `cpu`;
     /// `cuda:N` without the provider, the driver or GPU N is an error naming what is
     /// missing, and so is `openvino` without OpenVINO. `openvino` registers the plugin with
     /// `env`, or loads OpenVINO's runtime where the plugin does not serve the CPU (once per
@@ -181,13 +218,13 @@ impl Device {
             cuda_provider,
             // The driver is asked only when the provider could use it.
             cuda_devices: if cuda_provider { cuda_devices() } else { Ok(0) },
-            bf16: cpu_has_native_bf16(),
+            openvino_pays: cpu_prefers_openvino(),
         };
         self.resolve_with(library, found, || super::runtime::openvino(env).map(|_| ()))
     }
 
     /// [`Device::resolve`] given what was found, with `openvino` registering the plugin
-    /// (called only for `openvino`, and for `auto` on a CPU with native bfloat16 and no GPU).
+    /// (called only for `openvino`, and for `auto` on such a CPU and no GPU).
     fn resolve_with(
         self,
         library: &str,
@@ -195,7 +232,7 @@ impl Device {
         openvino: impl FnOnce() -> Result<(), String>,
     ) -> Result<Device, String> {
         const INSTEAD: &str = "or choose --device cpu (or auto)";
-        let Found { cuda_provider: provider, cuda_devices: devices, bf16 } = found;
+        let Found { cuda_provider: provider, cuda_devices: devices, openvino_pays } = found;
         match self {
             Device::Auto if provider && matches!(devices, Ok(n) if n > 0) => Ok(Device::Cuda(0)),
             Device::Auto => {
@@ -203,14 +240,14 @@ impl Device {
                     let why = devices.map_or_else(|e| e, |_| "the NVIDIA driver reports no GPU".to_string());
                     tracing::warn!("--device auto: no GPU: {why}");
                 }
-                if !bf16 {
+                if !openvino_pays {
                     return Ok(Device::Cpu);
                 }
                 match openvino() {
                     Ok(()) => Ok(Device::OpenVino),
                     Err(e) => {
                         tracing::warn!(
-                            "--device auto: this CPU computes bfloat16, but OpenVINO is not available ({e}); \
+                            "--device auto: OpenVINO's bfloat16 is the faster on this CPU, but OpenVINO is not available ({e}); \
                              running on ONNX Runtime's CPU provider"
                         );
                         Ok(Device::Cpu)
@@ -271,8 +308,8 @@ mod tests {
     fn devices_resolve_from_the_provider_and_the_driver() {
         let lib = "/opt/lib/libonnxruntime.so.1.31.1";
         let no_driver = || Err("the NVIDIA driver library libcuda.so.1 cannot be loaded (not found)".to_string());
-        let found = |cuda_provider, cuda_devices| Found { cuda_provider, cuda_devices, bf16: false };
-        let no_openvino = || -> Result<(), String> { panic!("OpenVINO asked for on a CPU without native bfloat16") };
+        let found = |cuda_provider, cuda_devices| Found { cuda_provider, cuda_devices, openvino_pays: false };
+        let no_openvino = || -> Result<(), String> { panic!("OpenVINO asked for on a CPU where it does not pay") };
         // auto: CUDA only with the provider and a GPU.
         assert_eq!(Device::Auto.resolve_with(lib, found(true, Ok(2)), no_openvino), Ok(Device::Cuda(0)));
         for (provider, devices) in [(false, Ok(0)), (true, Ok(0)), (true, no_driver())] {
@@ -295,16 +332,53 @@ mod tests {
     }
 
     #[test]
-    fn openvino_is_chosen_on_a_cpu_with_native_bf16_where_it_loads() {
+    fn openvino_pays_with_amx_and_with_avx512_bf16_on_amd_only() {
+        let cpu = |amx, avx512_bf16, intel| CpuBf16 { amx, avx512_bf16, intel };
+        // Intel Xeon with AMX (Sapphire Rapids on): OpenVINO measured 2.5x as fast.
+        assert!(cpu(true, true, true).openvino_pays());
+        // AMD EPYC Zen 4: AVX512-BF16, about 1.5x as fast.
+        assert!(cpu(false, true, false).openvino_pays());
+        // Intel Xeon with AVX512-BF16 and no AMX (Cooper Lake, or AMX hidden by a
+        // hypervisor): 1.5-1.8x slower than the CPU provider.
+        assert!(!cpu(false, true, true).openvino_pays());
+        // Neither: float32 through OpenVINO, slower everywhere measured.
+        assert!(!cpu(false, false, true).openvino_pays());
+        assert!(!cpu(false, false, false).openvino_pays());
+    }
+
+    #[cfg(all(target_os = "linux", target_arch = "x86_64"))]
+    #[test]
+    fn cpuid_detection_agrees_with_the_kernel() {
+        // The kernel's view of the first CPU.
+        let info = std::fs::read_to_string("/proc/cpuinfo").expect("/proc/cpuinfo");
+        let field = |name: &str| {
+            info.lines()
+                .find(|l| l.split(':').next().is_some_and(|k| k.trim() == name))
+                .and_then(|l| l.split_once(':'))
+                .map(|(_, v)| v.trim().to_string())
+                .unwrap_or_default()
+        };
+        let flags = field("flags");
+        let has = |flag: &str| flags.split_whitespace().any(|f| f == flag);
+        let found = CpuBf16::detect();
+        assert_eq!(found.intel, field("vendor_id") == "GenuineIntel", "{found:?}");
+        assert_eq!(found.avx512_bf16, has("avx512_bf16"), "{found:?}");
+        // A kernel too old to enable AMX lists no AMX flags where CPUID has them.
+        assert!(found.amx || !(has("amx_bf16") && has("amx_tile")), "{found:?}");
+        assert_eq!(cpu_prefers_openvino(), found.openvino_pays());
+    }
+
+    #[test]
+    fn openvino_is_chosen_on_a_cpu_where_it_pays_and_loads() {
         let lib = "/opt/lib/libonnxruntime.so.1.31.1";
-        let bf16 = |bf16| Found { cuda_provider: false, cuda_devices: Ok(0), bf16 };
+        let bf16 = |openvino_pays| Found { cuda_provider: false, cuda_devices: Ok(0), openvino_pays };
         let missing = || Err("OpenVINO's execution provider plugin not found (looked for /x/openvino)".to_string());
-        // auto: OpenVINO with native bfloat16 and OpenVINO installed; the CPU provider without either.
+        // auto: OpenVINO where it pays and is installed; the CPU provider without either.
         assert_eq!(Device::Auto.resolve_with(lib, bf16(true), || Ok(())), Ok(Device::OpenVino));
         assert_eq!(Device::Auto.resolve_with(lib, bf16(true), missing), Ok(Device::Cpu));
         assert_eq!(Device::Auto.resolve_with(lib, bf16(false), || Ok(())), Ok(Device::Cpu));
         // A GPU comes first.
-        let gpu = Found { cuda_provider: true, cuda_devices: Ok(1), bf16: true };
+        let gpu = Found { cuda_provider: true, cuda_devices: Ok(1), openvino_pays: true };
         assert_eq!(Device::Auto.resolve_with(lib, gpu, || Ok(())), Ok(Device::Cuda(0)));
         // openvino asked for by name: on any CPU, an error naming what is missing without the plugin.
         assert_eq!(Device::OpenVino.resolve_with(lib, bf16(false), || Ok(())), Ok(Device::OpenVino));

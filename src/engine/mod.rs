@@ -278,8 +278,8 @@ impl Engine {
         let threads = config.threads.max(1);
         let library = runtime::library().map_or_else(|| "loaded".to_string(), |p| p.display().to_string());
         let device = config.device.resolve(env, &library).map_err(EngineError::Runtime)?;
-        let via = runtime::openvino_route().filter(|_| device == Device::OpenVino);
-        tracing::info!(asked = %config.device, device = %device, openvino_via = ?via, "the networks run on {device}");
+        let via = runtime::openvino_route().filter(|_| device == Device::OpenVino).map(runtime::OpenVino::name);
+        tracing::info!(asked = %config.device, device = %device, openvino_via = via, "the networks run on {device}");
         let placement = model::Placement {
             threads,
             device,

@@ -4,8 +4,8 @@
 //! The plugin (`onnxruntime-ep-openvino`, [`super::runtime::register_openvino`]) offers
 //! only Intel hardware to ONNX Runtime: on an AMD CPU it registers and offers no device.
 //! OpenVINO's CPU runtime itself runs on any x86-64 CPU, and in bfloat16 on those with
-//! AVX512-BF16 (AMD EPYC since Zen 4), where it ran the default network 2.2× as fast as
-//! ONNX Runtime's float32 CPU provider (docs/results/speed-work.md). There `--device
+//! AVX512-BF16 (AMD EPYC since Zen 4), where it ran the default network about 1.5× as fast
+//! as ONNX Runtime's float32 CPU provider (docs/results/speed-work.md). There `--device
 //! openvino` compiles each contract-v2 graph with OpenVINO's C API (the `openvino` crate,
 //! linked at run time like ONNX Runtime) after ONNX Runtime has checked it against the
 //! contract; the other networks (contract v1, the paper's) stay on ONNX Runtime's CPU

@@ -90,6 +90,16 @@ pub enum OpenVino {
     Runtime,
 }
 
+impl OpenVino {
+    /// The route's name in reports and logs: `plugin` or `runtime`.
+    pub fn name(self) -> &'static str {
+        match self {
+            OpenVino::Plugin => "plugin",
+            OpenVino::Runtime => "runtime",
+        }
+    }
+}
+
 /// Registers OpenVINO's execution provider plugin with `env` (once per process; later calls
 /// return the first answer): [`OpenVino::Plugin`] where it offers the CPU, else OpenVINO's
 /// runtime from the plugin's directory is loaded for [`OpenVino::Runtime`].
