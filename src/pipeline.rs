@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use crate::engine::variance::{self, VarianceCheck};
 use crate::engine::{Denoised, Denoiser, EngineError, Fireflies, FireflyReport, Options, Progress, Variant};
-use crate::frame::{Carried, Carry, ChannelMaps, Frame, FrameError, Limits, Sanitized};
+use crate::frame::{Carried, Carry, ChannelMaps, Frame, FrameError, FrameKind, Limits, Sanitized};
 use crate::jobs::{Layer, Timings};
 use crate::preview::Rgb;
 use crate::quality::Comparison;
@@ -152,6 +152,15 @@ fn decode_carrying(request: &Request<'_>, carry: &Carry) -> Result<(Frame, Carri
         .map_err(|error| Failure::Invalid { which, error })
 }
 
+/// The kind of the frame to denoise as its header tells it, or `None` where the header
+/// cannot be read (the decode then says why).
+fn header_kind(request: &Request<'_>) -> Option<FrameKind> {
+    let file = std::fs::File::open(request.frame).ok()?;
+    let info = crate::frame::read_header(std::io::BufReader::new(file), &request.limits).ok()?;
+    let names: Vec<&str> = info.channels.iter().map(String::as_str).collect();
+    Some(FrameKind::of_channels(&names, &request.channel_maps))
+}
+
 /// The header attributes the denoiser adds to its results: the model variant, the networks
 /// (architecture and SHA-256 of each graph) and the software version.
 pub const ATTRIBUTES: [&str; 4] =
@@ -192,17 +201,34 @@ pub fn run(
     on_tile: &mut dyn FnMut(Progress) -> bool,
 ) -> Result<Output, Failure> {
     let started = Instant::now();
-    let t = Instant::now();
     let carry = Carry { all: request.layers.contains(&Layer::All), written: written(request.layers) };
-    let (mut frame, mut carried, reference) = tracing::info_span!("decode").in_scope(|| {
-        let (frame, carried) = decode_carrying(request, &carry)?;
-        let reference = request.reference.map(|p| decode(p, Input::Reference, &request.limits)).transpose()?;
-        if let Some(r) = &reference {
-            check_same_size((frame.width, frame.height), (r.width, r.height))?;
-        }
-        Ok::<_, Failure>((frame, carried, reference))
-    })?;
-    let decode_ms = ms(t);
+    let decoding = || {
+        let t = Instant::now();
+        let decoded = tracing::info_span!("decode").in_scope(|| {
+            let (frame, carried) = decode_carrying(request, &carry)?;
+            let reference = request.reference.map(|p| decode(p, Input::Reference, &request.limits)).transpose()?;
+            if let Some(r) = &reference {
+                check_same_size((frame.width, frame.height), (r.width, r.height))?;
+            }
+            Ok::<_, Failure>((frame, carried, reference))
+        });
+        (decoded, ms(t))
+    };
+    let (decoded, decode_ms) = if denoiser.loads_on_demand() {
+        // A denoiser that loads its networks on first use (`mcdenoise run`) loads them while
+        // the frame decodes: its header says which variant the frame needs.
+        let kind = header_kind(request);
+        std::thread::scope(|scope| {
+            let decoding = scope.spawn(decoding);
+            if let Some(kind) = kind {
+                denoiser.prepare(request.variant, kind);
+            }
+            decoding.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+        })
+    } else {
+        decoding()
+    };
+    let (mut frame, mut carried, reference) = decoded?;
     if frame.sanitized.total > 0 {
         tracing::warn!(samples = frame.sanitized.total, "non-finite samples replaced by 0");
     }

@@ -10,7 +10,7 @@ use std::path::Path;
 use common::*;
 use mcdenoise::engine::{
     albedo, exposure, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding,
-    ModelLoading, Options, Outputs, Precision, Reconstruction, SpecularPyramid, Variant,
+    Denoiser, ModelLoading, Options, Outputs, Precision, Reconstruction, SpecularPyramid, Variant,
 };
 use model_dirs::*;
 
@@ -447,6 +447,42 @@ fn on_demand_loading_creates_only_the_networks_a_frame_uses() {
     assert!(err.contains("lin2020") && err.contains("diffuse.onnx"), "{err}");
     let again = lazy.denoise(&with_cov, Some(lin2020), &mut |_| true).err().unwrap().to_string();
     assert_eq!(again, err, "asked again, the same error");
+}
+
+/// `Denoiser::prepare` (what the pipeline calls while a frame decodes, from its header's
+/// kind) loads the variant the frame will be denoised with, and nothing else; a variant
+/// that cannot load is left for the denoising to report.
+#[test]
+fn prepare_loads_the_variant_a_frame_of_that_kind_needs() {
+    let dir = mixed();
+    let mut config = EngineConfig::new(dir.path());
+    (config.tile, config.tile_v2, config.threads) = (32, 32, 2);
+    config.loading = ModelLoading::OnDemand;
+    let loaded = |e: &Engine| e.models().iter().map(|m| m.variant.to_string()).collect::<Vec<_>>();
+    let mut lazy = Engine::load(&config).unwrap();
+    assert!(lazy.loads_on_demand());
+    let without_cov = synthetic_frame(40, 36, false);
+    lazy.prepare(None, without_cov.kind());
+    assert_eq!(loaded(&lazy), ["nocov", "nocov"], "one network per component of the v1 variant");
+    let with_cov = synthetic_frame(40, 36, true);
+    lazy.prepare(None, with_cov.kind());
+    assert_eq!(loaded(&lazy), ["nocov", "nocov", "full"]);
+    let before = lazy.loaded_on_demand();
+    assert_eq!(lazy.denoise(&with_cov, None, &mut |_| true).unwrap().variant, Variant::Full);
+    assert_eq!(lazy.loaded_on_demand(), before, "nothing loaded again");
+    // A named variant is loaded whatever the frame's kind; every variant loaded, nothing left.
+    let lin2020 = Variant::parse("lin2020").unwrap();
+    lazy.prepare(Some(lin2020), without_cov.kind());
+    assert!(loaded(&lazy).contains(&"lin2020".to_string()));
+    assert!(!lazy.loads_on_demand());
+
+    // A broken variant: prepare says nothing, the denoising names the file.
+    std::fs::write(dir.path().join("lin2020/diffuse.onnx"), b"not an onnx file").unwrap();
+    let mut lazy = Engine::load(&config).unwrap();
+    lazy.prepare(Some(lin2020), with_cov.kind());
+    assert!(lazy.models().is_empty());
+    let err = lazy.denoise(&with_cov, Some(lin2020), &mut |_| true).err().unwrap().to_string();
+    assert!(err.contains("lin2020") && err.contains("diffuse.onnx"), "{err}");
 }
 
 #[test]

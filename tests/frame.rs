@@ -4,7 +4,9 @@
 use crate::common;
 
 use common::*;
-use mcdenoise::frame::{write_exr, Buffer, ChannelMaps, Frame, FrameError, Limits, OutputLayer, PlaneRef};
+use mcdenoise::frame::{
+    read_header, write_exr, Buffer, ChannelMaps, Frame, FrameError, FrameKind, Limits, OutputLayer, PlaneRef,
+};
 
 const W: usize = 19;
 const H: usize = 13;
@@ -345,6 +347,36 @@ fn a_beauty_albedo_normal_frame_is_read_with_the_beauty_as_its_diffuse() {
     let err = Frame::from_exr_bytes(&exr_single(W, H, &planes, Sample::F32), &Limits::default()).unwrap_err();
     assert!(err.to_string().contains("normal.R"), "{err}");
     assert!(err.to_string().contains("needs an albedo and a normal (then the `beauty` variant takes it"), "{err}");
+}
+
+/// The kind read from a header's channel names alone (what `mcdenoise run` loads its
+/// networks from while the frame decodes) is the decoded frame's.
+#[test]
+fn a_headers_channels_tell_the_frames_kind() {
+    let fixtures = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/frames");
+    let beauty: Vec<_> = named_planes(W, H, false)
+        .into_iter()
+        .filter(|(n, _)| n.starts_with("albedo.") || n.starts_with("normal."))
+        .chain(["R", "G", "B"].map(|c| (c.to_string(), vec![0.5; W * H])))
+        .collect();
+    let mut files = vec![
+        (exr_single(W, H, &named_planes(W, H, true), Sample::F32), (false, true)),
+        (exr_single(W, H, &named_planes(W, H, false), Sample::F32), (false, false)),
+        (exr_single(W, H, &beauty, Sample::F32), (true, false)),
+        (cycles_frame(W, H, |_| true).0, (false, false)),
+        (cycles_frame(W, H, |p| !p.starts_with("Diffuse")).0, (true, false)),
+    ];
+    for (name, expected) in [("cornell-spp8.exr", (false, true)), ("cornell-nocov-spp8.exr", (false, false))] {
+        files.push((std::fs::read(fixtures.join(name)).unwrap(), expected));
+    }
+    let maps = ChannelMaps::default();
+    for (i, (bytes, (beauty_only, covariance))) in files.iter().enumerate() {
+        let info = read_header(std::io::Cursor::new(bytes), &Limits::default()).unwrap();
+        let names: Vec<&str> = info.channels.iter().map(String::as_str).collect();
+        let kind = FrameKind::of_channels(&names, &maps);
+        assert_eq!(kind, FrameKind { beauty_only: *beauty_only, covariance: *covariance }, "file {i}: {names:?}");
+        assert_eq!(kind, frame_of(bytes).kind(), "file {i}");
+    }
 }
 
 #[test]

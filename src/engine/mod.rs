@@ -39,7 +39,7 @@ pub use fireflies::{Fireflies, FireflyMode};
 pub use model::{ModelInfo, VariantModel};
 pub use preprocess::{depth_scale, FrameStats, Rect, EPS};
 
-use crate::frame::{Buffer, Frame, Plane, PlaneRef};
+use crate::frame::{Buffer, Frame, FrameKind, Plane, PlaneRef};
 
 /// Why the engine could not denoise.
 #[derive(Debug, thiserror::Error)]
@@ -369,18 +369,25 @@ impl Engine {
     /// ([`Frame::beauty_only`]) and `beauty` is loaded, `full` when it has covariance and
     /// `full` is loaded, else `nocov`.
     pub fn select(&self, frame: &Frame) -> Result<Variant, EngineError> {
+        let kind = frame.kind();
+        let variant = self.select_kind(kind)?;
+        if variant == Variant::Nocov && kind.covariance {
+            tracing::warn!("frame has covariance but no `full` model is loaded; using `nocov`");
+        }
+        Ok(variant)
+    }
+
+    /// [`Engine::select`] for a frame of `kind`.
+    fn select_kind(&self, kind: FrameKind) -> Result<Variant, EngineError> {
         let has = |v: Variant| self.serves(v);
-        if frame.beauty_only && has(Variant::Beauty) {
+        if kind.beauty_only && has(Variant::Beauty) {
             Ok(Variant::Beauty)
-        } else if frame.has(Buffer::Covariance) && has(Variant::Full) {
+        } else if kind.covariance && has(Variant::Full) {
             Ok(Variant::Full)
         } else if has(Variant::Nocov) {
-            if frame.has(Buffer::Covariance) {
-                tracing::warn!("frame has covariance but no `full` model is loaded; using `nocov`");
-            }
             Ok(Variant::Nocov)
         } else {
-            let lacks = if frame.has(Buffer::Covariance) {
+            let lacks = if kind.covariance {
                 "no `full` or `nocov` model is loaded"
             } else {
                 "the frame has no `covariance` channel and no `nocov` model is loaded"
@@ -537,6 +544,17 @@ pub trait Denoiser {
         options: Options,
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError>;
+
+    /// Whether [`Denoiser::prepare`] may have work to do: some variant is loaded only on
+    /// first use ([`ModelLoading::OnDemand`]).
+    fn loads_on_demand(&self) -> bool {
+        false
+    }
+
+    /// Loads what a frame of `kind` denoised with `variant` (`None`: the one chosen for the
+    /// frame) will need, while the frame is still being decoded. A failure is left for
+    /// [`Denoiser::denoise`] to report.
+    fn prepare(&mut self, _variant: Option<Variant>, _kind: FrameKind) {}
 }
 
 impl Denoiser for Engine {
@@ -555,6 +573,17 @@ impl Denoiser for Engine {
         on_tile: &mut dyn FnMut(Progress) -> bool,
     ) -> Result<Denoised, EngineError> {
         Engine::denoise_with(self, frame, options, on_tile)
+    }
+
+    fn loads_on_demand(&self) -> bool {
+        !self.unloaded.is_empty()
+    }
+
+    fn prepare(&mut self, variant: Option<Variant>, kind: FrameKind) {
+        let loaded = variant.map_or_else(|| self.select_kind(kind), Ok).and_then(|v| self.ensure_loaded(v));
+        if let Err(e) = loaded {
+            tracing::debug!("not loaded ahead of the frame: {e}");
+        }
     }
 }
 

@@ -92,6 +92,28 @@ pub struct Sanitized {
     pub by_buffer: std::collections::BTreeMap<String, u64>,
 }
 
+/// What chooses a frame's variant (`Engine::select`): whether it lacks the
+/// diffuse/specular split and whether it has covariance. Both follow from the channel names
+/// alone, so a header tells them before any pixel is decoded ([`FrameKind::of_channels`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FrameKind {
+    /// [`Frame::beauty_only`].
+    pub beauty_only: bool,
+    /// The frame has a covariance buffer.
+    pub covariance: bool,
+}
+
+impl FrameKind {
+    /// The kind of a frame whose file has channels `names` (renderers' AOV names through
+    /// `maps`), as [`Frame::kind`] gives it once decoded.
+    pub fn of_channels(names: &[&str], maps: &ChannelMaps) -> FrameKind {
+        let all = renderers::with_derived(names, maps);
+        let all: Vec<&str> = all.iter().map(String::as_str).collect();
+        let covariance = layout::resolve(&all)[Buffer::Covariance as usize].is_some();
+        FrameKind { beauty_only: renderers::beauty_only(names, maps), covariance }
+    }
+}
+
 /// A validated frame: every required buffer present, all of one size, all samples finite.
 #[derive(Clone, Debug)]
 pub struct Frame {
@@ -185,6 +207,11 @@ impl Frame {
 
     pub fn has(&self, buffer: Buffer) -> bool {
         self.buffers[buffer as usize].is_some()
+    }
+
+    /// What chooses its variant.
+    pub fn kind(&self) -> FrameKind {
+        FrameKind { beauty_only: self.beauty_only, covariance: self.has(Buffer::Covariance) }
     }
 
     fn stored(&self, buffer: Buffer) -> &Stored {
