@@ -122,6 +122,16 @@ const FILTERED_OUTPUTS: [&str; 2] = ["diffuse_filtered", "specular_filtered"];
 /// that GPU, failing rather than falling back to the CPU. A helper returning `ort::Result`
 /// because builder errors carry the builder and are not `Send`.
 pub fn build_session(env: &ort::environment::Environment, path: &Path, placement: Placement) -> ort::Result<Session> {
+    build_session_optimized(env, path, placement, GraphOptimizationLevel::All)
+}
+
+/// [`build_session`] at graph optimization `level`.
+fn build_session_optimized(
+    env: &ort::environment::Environment,
+    path: &Path,
+    placement: Placement,
+    level: GraphOptimizationLevel,
+) -> ort::Result<Session> {
     let threads = placement.threads.max(1);
     let builder = Session::builder(env)?;
     let builder = match placement.device {
@@ -150,7 +160,7 @@ pub fn build_session(env: &ort::environment::Environment, path: &Path, placement
         .with_memory_pattern(false)?
         // The environment's CPU arena, shared by every session (runtime.rs).
         .with_env_allocators()?
-        .with_optimization_level(GraphOptimizationLevel::All)?
+        .with_optimization_level(level)?
         .with_intra_threads(threads)?
         .with_inter_threads(1)?
         .with_intra_op_spinning(false)?
@@ -194,8 +204,23 @@ struct Opened {
     sha256: String,
 }
 
+/// What an [`Opened`] session is for.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum SessionUse {
+    /// Running the network: every graph optimization.
+    Run,
+    /// Only its metadata and its inputs' and outputs' names and shapes (a network that
+    /// OpenVINO compiles and runs): none, which saves the optimizer's time.
+    Check,
+}
+
 impl Opened {
-    fn open(env: &ort::environment::Environment, path: &Path, placement: Placement) -> Result<Opened, EngineError> {
+    fn open(
+        env: &ort::environment::Environment,
+        path: &Path,
+        placement: Placement,
+        usage: SessionUse,
+    ) -> Result<Opened, EngineError> {
         match std::fs::metadata(path) {
             Ok(m) if m.is_file() => {}
             Ok(_) => return Err(model_error(path, "not a file")),
@@ -213,8 +238,12 @@ impl Opened {
                 }
                 _ => model_error(path, format!("cannot read: {e}")),
             })?;
-        let session =
-            build_session(env, path, placement).map_err(|e| model_error(path, format!("cannot load: {e}")))?;
+        let level = match usage {
+            SessionUse::Run => GraphOptimizationLevel::All,
+            SessionUse::Check => GraphOptimizationLevel::Disable,
+        };
+        let session = build_session_optimized(env, path, placement, level)
+            .map_err(|e| model_error(path, format!("cannot load: {e}")))?;
         let meta = {
             let fail = |e: ort::Error| model_error(path, format!("cannot read metadata: {e}"));
             let meta = session.metadata().map_err(fail)?;
@@ -307,7 +336,7 @@ impl Network {
         component: Component,
         placement: Placement,
     ) -> Result<Network, EngineError> {
-        let model = Opened::open(env, path, placement)?;
+        let model = Opened::open(env, path, placement, SessionUse::Run)?;
         let common = model.common(contract::CONTRACT_VERSION, V1_HINT, variant)?;
         model.expect(keys::COMPONENT, component.name(), " (the file's name)")?;
         model.expect(keys::KERNEL_SIZE, &contract::KERNEL_SIZE.to_string(), "")?;
@@ -448,7 +477,12 @@ impl MultiScaleNetwork {
         variant: Variant,
         placement: Placement,
     ) -> Result<MultiScaleNetwork, EngineError> {
-        let model = Opened::open(env, path, placement)?;
+        // Where OpenVINO's runtime is driven directly, ONNX Runtime's session only checks the
+        // graph against the contract.
+        let direct = placement.device == Device::OpenVino
+            && super::runtime::openvino_route() == Some(super::runtime::OpenVino::Runtime);
+        let usage = if direct { SessionUse::Check } else { SessionUse::Run };
+        let model = Opened::open(env, path, placement, usage)?;
         let common = model.common(contract::CONTRACT_V2, V2_HINT, variant)?;
         let kernel_size: usize = model.number(keys::KERNEL_SIZE)?;
         if kernel_size % 2 == 0 {
@@ -543,8 +577,6 @@ impl MultiScaleNetwork {
             specular_pyramid,
             detail_gains,
         };
-        let direct = placement.device == Device::OpenVino
-            && super::runtime::openvino_route() == Some(super::runtime::OpenVino::Runtime);
         let runner = if direct {
             // ONNX Runtime's session has checked the graph against the contract; OpenVINO
             // compiles the same file and runs it.
