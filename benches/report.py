@@ -178,7 +178,9 @@ def precision_section(speed: dict, fp32: dict) -> list[str]:
     if flags is not None:
         served = fp32.get("device") == "openvino"
         out += ["", "bf16: this CPU has " + (", ".join(flags) + (
-            "; the figures above are its bfloat16 (OpenVINO)." if served else "; bf16 execution is not measured here.")
+            "; the figures above are its bfloat16 (OpenVINO)." if served else
+            "; the figures above are ONNX Runtime's float32 CPU provider (`--device auto` takes OpenVINO's "
+            "bfloat16 only where it was measured faster: AMX, or AVX512-BF16 on AMD; docs/results/speed-work.md).")
             if flags else
                 "no bf16 instructions (no avx512_bf16 or amx_bf16 flag), so bf16 is not measured.")]
     return out
