@@ -409,15 +409,21 @@ fn any_directory_is_a_variant_and_contracts_mix() {
     assert!(err.contains("no `oidn` model is loaded (loaded: full, lin2020, nocov)"), "{err}");
 }
 
+/// Engines of `dir` that load each variant on first use, tiles of 32, 2 threads.
+fn on_demand(dir: &Path) -> EngineConfig {
+    let mut config = EngineConfig::new(dir);
+    (config.tile, config.tile_v2, config.threads) = (32, 32, 2);
+    config.loading = ModelLoading::OnDemand;
+    config
+}
+
 /// `ModelLoading::OnDemand` (what `mcdenoise run` uses): the variants are found at load and
 /// each one's networks created when a frame first needs them, with the same results as a
 /// whole load; a broken variant that no frame uses does not stop the others.
 #[test]
 fn on_demand_loading_creates_only_the_networks_a_frame_uses() {
     let dir = mixed();
-    let mut config = EngineConfig::new(dir.path());
-    (config.tile, config.tile_v2, config.threads) = (32, 32, 2);
-    config.loading = ModelLoading::OnDemand;
+    let config = on_demand(dir.path());
     let mut lazy = Engine::load(&config).unwrap();
     let lin2020 = Variant::parse("lin2020").unwrap();
     assert_eq!(lazy.variants(), vec![Variant::Full, lin2020, Variant::Nocov]);
@@ -455,9 +461,7 @@ fn on_demand_loading_creates_only_the_networks_a_frame_uses() {
 #[test]
 fn prepare_loads_the_variant_a_frame_of_that_kind_needs() {
     let dir = mixed();
-    let mut config = EngineConfig::new(dir.path());
-    (config.tile, config.tile_v2, config.threads) = (32, 32, 2);
-    config.loading = ModelLoading::OnDemand;
+    let config = on_demand(dir.path());
     let loaded = |e: &Engine| e.models().iter().map(|m| m.variant.to_string()).collect::<Vec<_>>();
     let mut lazy = Engine::load(&config).unwrap();
     assert!(lazy.loads_on_demand());
