@@ -9,8 +9,8 @@ use std::path::Path;
 
 use common::*;
 use mcdenoise::engine::{
-    albedo, exposure, synthetic_frame, AlbedoPrefilter, Engine, EngineConfig, FeatureSet, InputCompression, IoBinding,
-    Denoiser, ModelLoading, Options, Outputs, Precision, Reconstruction, SpecularPyramid, Variant,
+    albedo, exposure, synthetic_frame, AlbedoPrefilter, Denoiser, Engine, EngineConfig, FeatureSet, InputCompression,
+    IoBinding, ModelLoading, Options, Outputs, Precision, Reconstruction, SpecularPyramid, Variant,
 };
 use model_dirs::*;
 
