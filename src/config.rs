@@ -175,8 +175,8 @@ pub struct ServeArgs {
     /// CPUs, its runtime directly on others), `cuda` or `cuda:N` (ONNX Runtime's CUDA
     /// execution provider on GPU N; needs the GPU build of ONNX Runtime, as in the GPU
     /// image), or `auto`: CUDA where available, else `openvino` on a CPU where its bfloat16
-    /// is the faster (AMX, or AVX512-BF16 on AMD) and OpenVINO is installed, else `cpu`. Workers share
-    /// the device: with a GPU, `--workers` is the number of jobs on it at once.
+    /// is the faster (AMX, or AVX512-BF16 on AMD) and OpenVINO is installed, else `cpu`.
+    /// Workers share the device: with a GPU, `--workers` is the number of jobs on it at once.
     #[arg(long, env = "MCDENOISE_DEVICE", default_value = "auto", value_parser = crate::cli::parse_device, help_heading = "Models and workers")]
     pub device: crate::engine::Device,
     /// Where contract-v2 kernels are applied: `engine` (the engine's own code, on the CPU),

@@ -14,10 +14,11 @@
 //! runs the convolutions in bfloat16 (its default there); elsewhere in float32, where ONNX
 //! Runtime's own CPU provider is faster (docs/results/speed-work.md). `auto` takes it only
 //! where it was measured faster than the CPU provider ([`CpuBf16::openvino_pays`]): with
-//! AMX, and with AVX512-BF16 on AMD, not with AVX512-BF16 alone on an Intel Xeon. A process runs one device: once OpenVINO has run in a
-//! process, sessions of ONNX Runtime's CPU provider in the same process gave results that
-//! differ by up to 5e-4 (relative) from a process without it, so tests that compare the CPU
-//! provider's outputs keep OpenVINO out of their process.
+//! AMX, and with AVX512-BF16 on AMD, not with AVX512-BF16 alone on an Intel Xeon. A
+//! process runs one device: once OpenVINO has run in a process, sessions of ONNX Runtime's
+//! CPU provider in the same process gave results that differ by up to 5e-4 (relative) from
+//! a process without it, so tests that compare the CPU provider's outputs keep OpenVINO out
+//! of their process.
 //!
 //! The CUDA execution provider lives in the GPU build of ONNX Runtime (`onnxruntime-gpu`,
 //! the GPU image; docs/deploy.md). The CPU build the default setup installs has none:
@@ -155,24 +156,26 @@ impl CpuBf16 {
     /// Reads CPUID: leaf 0's vendor, leaf 7 sub-leaf 0 EDX bit 22 (AMX-BF16) and bit 24
     /// (AMX-TILE), sub-leaf 1 EAX bit 5 (AVX512-BF16). The kernel's permission to use AMX
     /// tiles is OpenVINO's to ask for.
+    #[cfg(target_arch = "x86_64")]
     pub fn detect() -> CpuBf16 {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::x86_64::{__cpuid, __cpuid_count};
-            let leaf0 = __cpuid(0);
-            // "GenuineIntel" in EBX, EDX, ECX.
-            let intel = (leaf0.ebx, leaf0.edx, leaf0.ecx) == (0x756e_6547, 0x4965_6e69, 0x6c65_746e);
-            // Leaf 7 exists where leaf 0 reports a maximum of at least 7, and its sub-leaf 1
-            // where sub-leaf 0's EAX reports at least 1; both checked first.
-            if leaf0.eax >= 7 {
-                let leaf7 = __cpuid_count(7, 0);
-                let amx = leaf7.edx & (1 << 22) != 0 && leaf7.edx & (1 << 24) != 0;
-                let avx512_bf16 = leaf7.eax >= 1 && __cpuid_count(7, 1).eax & (1 << 5) != 0;
-                return CpuBf16 { amx, avx512_bf16, intel };
-            }
+        use std::arch::x86_64::{__cpuid, __cpuid_count};
+        let leaf0 = __cpuid(0);
+        // "GenuineIntel" in EBX, EDX, ECX.
+        let intel = (leaf0.ebx, leaf0.edx, leaf0.ecx) == (0x756e_6547, 0x4965_6e69, 0x6c65_746e);
+        // Leaf 7 exists where leaf 0 reports a maximum of at least 7, and its sub-leaf 1
+        // where sub-leaf 0's EAX reports at least 1; both checked first.
+        if leaf0.eax < 7 {
             return CpuBf16 { intel, ..CpuBf16::default() };
         }
-        #[allow(unreachable_code)]
+        let leaf7 = __cpuid_count(7, 0);
+        let amx = leaf7.edx & (1 << 22) != 0 && leaf7.edx & (1 << 24) != 0;
+        let avx512_bf16 = leaf7.eax >= 1 && __cpuid_count(7, 1).eax & (1 << 5) != 0;
+        CpuBf16 { amx, avx512_bf16, intel }
+    }
+
+    /// Off x86-64: none of them.
+    #[cfg(not(target_arch = "x86_64"))]
+    pub fn detect() -> CpuBf16 {
         CpuBf16::default()
     }
 
@@ -180,8 +183,7 @@ impl CpuBf16 {
     /// float32 CPU provider here, as measured (docs/results/speed-work.md): with AMX (an
     /// Intel Xeon, 2.5x), and with AVX512-BF16 on an AMD EPYC (Zen 4, about 1.5x). Not with
     /// AVX512-BF16 alone on an Intel Xeon: there OpenVINO was 1.5-1.8x slower (an Emerald
-    /// Rapids virtual machine without AMX), where AVX-512's float32 already has twice Zen
-    /// 4's width per instruction.
+    /// Rapids virtual machine without AMX).
     pub fn openvino_pays(self) -> bool {
         self.amx || (self.avx512_bf16 && !self.intel)
     }
@@ -247,8 +249,8 @@ impl Device {
                     Ok(()) => Ok(Device::OpenVino),
                     Err(e) => {
                         tracing::warn!(
-                            "--device auto: OpenVINO's bfloat16 is the faster on this CPU, but OpenVINO is not available ({e}); \
-                             running on ONNX Runtime's CPU provider"
+                            "--device auto: OpenVINO's bfloat16 is the faster on this CPU, but OpenVINO is not \
+                             available ({e}); running on ONNX Runtime's CPU provider"
                         );
                         Ok(Device::Cpu)
                     }
