@@ -464,12 +464,15 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
             num.iter_mut().for_each(|n| n[..sw].fill(0.0));
             den[..sw].fill(0.0);
             // Offsets a window row at a time (`dy`), so that each pixel's sums stay in
-            // registers across the row's `SIDE` offsets in the columns whose neighbours
-            // all lie inside the frame; each pixel still takes its offsets in order.
+            // registers across the row's `SIDE` offsets, `LANES` pixels at a time, in the
+            // columns whose neighbours all lie inside the frame; the other columns (the
+            // frame's edges and what is left over from whole vectors) one at a time, their
+            // neighbours clamped. Each pixel still takes its offsets in order.
             let r = RADIUS as isize;
-            let (lo_c, hi_c) = {
+            let (lo_c, n) = {
                 let lo = r.clamp(x0 as isize, x1 as isize);
-                (lo as usize, (w as isize - r).clamp(lo, x1 as isize) as usize)
+                let hi = (w as isize - r).clamp(lo, x1 as isize);
+                (lo as usize, (hi - lo) as usize / LANES * LANES)
             };
             for gy in 0..SIDE {
                 let yq = clamp(y as isize + gy as isize - r, h);
@@ -482,7 +485,7 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
                 let [nr, ng, nb, nv] = &mut num;
                 for (j, h) in hs.iter().enumerate() {
                     let dx = j as isize - r;
-                    for x in (x0..lo_c).chain(hi_c..x1) {
+                    for x in (x0..lo_c).chain(lo_c + n..x1) {
                         let i = x - x0;
                         let xq = clamp(x as isize + dx, w);
                         add::<M>(
@@ -493,7 +496,6 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
                         );
                     }
                 }
-                let n = hi_c - lo_c;
                 if n == 0 {
                     continue;
                 }
@@ -505,10 +507,8 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
                 let hs: [[&[f32]; 3]; SIDE] = hs.map(|h| h.map(|s| &s[a..a + n]));
                 let (nr, ng, nb, nv) = (&mut nr[a..a + n], &mut ng[a..a + n], &mut nb[a..a + n], &mut nv[a..a + n]);
                 let den = &mut den[a..a + n];
-                // Eight pixels at a time, their sums in registers across the row's offsets.
                 let lanes = |s: &[f32], i: usize| -> [f32; LANES] { s[i..i + LANES].try_into().unwrap() };
-                let mut i = 0;
-                while i + LANES <= n {
+                for i in (0..n).step_by(LANES) {
                     let mut acc = [lanes(nr, i), lanes(ng, i), lanes(nb, i), lanes(nv, i), lanes(den, i)];
                     for j in 0..SIDE {
                         let (h, q) = (hs[j].map(|s| lanes(s, i)), qs[j].map(|s| lanes(s, i)));
@@ -524,18 +524,6 @@ fn filter_band<M: MulAdd>(planes: &Planes<'_>, y0: usize, mut out: [&mut [f32]; 
                     }
                     for (dst, src) in [&mut *nr, &mut *ng, &mut *nb, &mut *nv, &mut *den].into_iter().zip(acc) {
                         dst[i..i + LANES].copy_from_slice(&src);
-                    }
-                    i += LANES;
-                }
-                for i in i..n {
-                    for j in 0..SIDE {
-                        let (h, q) = (&hs[j], &qs[j]);
-                        add::<M>(
-                            h[0][i] + h[1][i] + h[2][i],
-                            [q[0][i], q[1][i], q[2][i], q[3][i], q[4][i]],
-                            [&mut nr[i], &mut ng[i], &mut nb[i], &mut nv[i]],
-                            &mut den[i],
-                        );
                     }
                 }
             }
