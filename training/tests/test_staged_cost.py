@@ -5,6 +5,8 @@ import json
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -33,3 +35,11 @@ def test_cores_are_the_engines():
     six = staged_cost.cores(1920, 1080, 768, 128, 16)
     assert [(x, y) for x, y, _, _ in six] == [(0, 0), (640, 0), (1280, 0), (0, 544), (640, 544), (1280, 544)]
     assert [staged_cost.grow(c, 128, 1920, 1080, 16) for c in six[:3]] == [(768, 672), (896, 672), (768, 672)]
+
+
+def test_frames_the_engine_cuts_further_are_refused():
+    sys.path.insert(0, str(ROOT / "benches"))
+    import staged_cost
+
+    with pytest.raises(SystemExit, match="region bound"):
+        staged_cost.main(["--sizes", "3840x2160", "--rounds", "1", "--threads", "1"])
