@@ -1,10 +1,11 @@
-"""What running the default network in three stages would save the engine, before building
-it: the shipped contract-v2 graph cut at its level-1 boundary and timed against the regions
-the engine runs today.
+"""What running the default network in three stages saves ONNX Runtime: the shipped
+contract-v2 graph cut at its level-1 boundary and timed against the whole graph over the
+regions the engine cuts a frame into (the measurement behind the engine's stages,
+`src/engine/stages.rs`; the engine runs the stage files `mcdenoise_train.stages` writes).
 
     python benches/staged_cost.py --models models --sizes 1280x720,1920x1080 --rounds 5
 
-Today every region is the whole network over a core and a halo of the receptive radius
+Without stages every region is the whole network over a core and a halo of the receptive radius
 (128 px for the shipped `full`), so a 1280×720 frame runs the network over 1.11 M pixels
 for its 0.92 M. Most of that radius comes from the coarse levels, whose pixels are cheap;
 the full-resolution convolutions (the paper's two extractors, decoder level 0, the level-0
@@ -20,7 +21,7 @@ heads) reach only a few pixels. Cut there, the network is three graphs:
 The cut graphs are checked against the whole one on a small frame (outputs equal), then
 timed on random inputs with the engine's session settings (--threads intra-op threads,
 memory patterns off, no spinning): the regions as `Tiling::cores` and `expand` cut the
-frame today (a balanced grid of cores of at most 768 px a side, the halo, sides multiples
+frame without stages (a balanced grid of cores of at most 768 px a side, the halo, sides multiples
 of 16), against `front` and `back` over each core and a margin of --margin px and `middle`
 over the whole frame. ONNX Runtime alone: no preprocessing, reconstruction or tiling of
 the engine; medians of the rounds, the two layouts in turns. Take it with background work

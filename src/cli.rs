@@ -271,6 +271,8 @@ pub fn run(args: RunArgs) -> Result<()> {
         "variant": out.variant,
         "contract": contract,
         "tiles": out.tiles,
+        // The network in three stages (front and back per core, middle over the frame).
+        "stages": out.staged,
         "tile": if contract == 2 { args.tile_v2 } else { args.tile },
         "reconstruction": reconstruction.to_string(),
         "precision": used.map_or(engine::Precision::Fp32, |m| m.precision).name(),

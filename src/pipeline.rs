@@ -45,6 +45,8 @@ pub struct Output {
     pub height: usize,
     pub variant: Variant,
     pub tiles: usize,
+    /// Whether the network ran in stages (engine::stages).
+    pub staged: bool,
     /// The result as an OpenEXR file.
     pub encoded: Vec<u8>,
     pub metrics: Option<Comparison>,
@@ -283,7 +285,7 @@ pub fn run(
     if out.exposure != 1.0 {
         warnings.push(exposure_warning(out.exposure));
     }
-    let Denoised { width, height, variant, tiles, timings: stages, fireflies, color, components, .. } = out;
+    let Denoised { width, height, variant, tiles, staged, timings: stages, fireflies, color, components, .. } = out;
     let (diffuse, specular) = components.map(|c| (c.diffuse, c.specular)).unzip();
     let mut components = [(Layer::Diffuse, diffuse), (Layer::Specular, specular)];
     let mut denoised: Vec<(String, Vec<f32>)> = rgb_names("").into_iter().zip(color).collect();
@@ -312,6 +314,7 @@ pub fn run(
         height,
         variant,
         tiles,
+        staged,
         encoded,
         metrics,
         sanitized,

@@ -76,6 +76,72 @@ fn detail_gains_are_read_and_tiles_still_equal_the_whole_frame() {
 }
 
 #[test]
+fn the_network_in_stages_gives_the_whole_graphs_output() {
+    // tiny-v2 and tiny-v2-gain carry the stage files of their model.onnx
+    // (`python -m mcdenoise_train.stages`): front and back per core with a 16-px margin,
+    // middle over the frame. The same pixels as the whole graph over each core and its
+    // halo, with tiles of every kind (one, interior, edge, sizes off the size multiple).
+    for (dir, cov) in [(tiny_v2(), true), (tiny_v2(), false), (tiny_v2_gain(), true)] {
+        for (w, h) in [(90, 70), (45, 37), (130, 64)] {
+            let frame = synthetic_frame(w, h, cov);
+            for tile in [0, 16, 32] {
+                let run = |stages: bool| {
+                    let mut config = EngineConfig::new(&dir);
+                    (config.tile, config.tile_v2, config.threads, config.stages) = (tile, tile, 2, stages);
+                    Engine::load(&config).unwrap().denoise(&frame, None, &mut |_| true).unwrap()
+                };
+                let (staged, whole) = (run(true), run(false));
+                assert!(staged.staged && !whole.staged, "{w}x{h}, tile {tile}");
+                assert_eq!(staged.tiles, whole.tiles);
+                for c in 0..3 {
+                    for (name, a, b) in [
+                        ("color", &staged.color[c], &whole.color[c]),
+                        ("diffuse", &parts(&staged).diffuse[c], &parts(&whole).diffuse[c]),
+                        ("specular", &parts(&staged).specular[c], &parts(&whole).specular[c]),
+                    ] {
+                        let d = max_rel_diff(a, b);
+                        assert!(d <= 1e-5, "{w}x{h}, cov {cov}, tile {tile}, {name} {c}: relative difference {d}");
+                    }
+                }
+            }
+        }
+    }
+    // A frame whose pooled features exceed the region bound runs the whole graph per region.
+    let mut config = EngineConfig::new(tiny_v2());
+    (config.tile_v2, config.region_pixels, config.threads) = (32, Some(40 * 40), 2);
+    let bounded = Engine::load(&config).unwrap().denoise(&synthetic_frame(90, 70, true), None, &mut |_| true).unwrap();
+    assert!(!bounded.staged);
+}
+
+#[test]
+fn stage_files_are_checked_against_their_model() {
+    let full = tiny_v2().join("full");
+    let copy = |dir: &Path, from: &Path, files: &[&str]| {
+        for f in files {
+            write(dir, "full", f, &std::fs::read(from.join(f)).unwrap());
+        }
+    };
+    // Cut from another model.onnx.
+    let tmp = tempfile::tempdir().unwrap();
+    copy(tmp.path(), &full, &["model.onnx"]);
+    copy(tmp.path(), &tiny_v2_gain().join("full"), &["front.onnx", "middle.onnx", "back.onnx"]);
+    let msg = load_error(tmp.path());
+    assert!(msg.contains("full/front.onnx") && msg.contains("cut them again with"), "{msg}");
+    // One missing.
+    let tmp = tempfile::tempdir().unwrap();
+    copy(tmp.path(), &full, &["model.onnx", "front.onnx", "middle.onnx"]);
+    let msg = load_error(tmp.path());
+    assert!(msg.contains("full/back.onnx") && msg.contains("file not found"), "{msg}");
+    // None: the whole graph.
+    let tmp = tempfile::tempdir().unwrap();
+    copy(tmp.path(), &full, &["model.onnx"]);
+    let mut config = EngineConfig::new(tmp.path());
+    config.threads = 1;
+    let out = Engine::load(&config).unwrap().denoise(&synthetic_frame(45, 37, true), None, &mut |_| true).unwrap();
+    assert!(!out.staged);
+}
+
+#[test]
 fn the_output_is_finite_and_the_components_add_up() {
     let out = engine_at(&tiny_v2(), 32).denoise(&synthetic_frame(45, 37, true), None, &mut |_| true).unwrap();
     for c in 0..3 {

@@ -103,6 +103,10 @@ pub mod keys {
     /// Contract v2, optional: how the reconstruction's specular pyramid averages, `log`
     /// (absent) or `linear` ([`super::SpecularPyramid`]).
     pub const SPECULAR_PYRAMID: &str = "mcdenoise.specular_pyramid";
+    /// Of a stage file (`front`, `middle` or `back`; engine::stages).
+    pub const STAGE: &str = "mcdenoise.stage";
+    /// Of a stage file: the SHA-256 (hex) of the `model.onnx` it was cut from.
+    pub const STAGE_OF: &str = "mcdenoise.stage_of";
 }
 
 /// What a contract-v2 graph outputs (docs/model-contract.md, "Reconstruction in the graph").

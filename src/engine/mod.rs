@@ -23,6 +23,7 @@ pub mod openvino;
 pub mod preprocess;
 pub mod reconstruct;
 pub mod runtime;
+pub mod stages;
 pub mod variance;
 
 use std::path::PathBuf;
@@ -93,6 +94,10 @@ pub struct EngineConfig {
     pub albedo_prefilter: AlbedoPrefilter,
     /// When the variants' networks are loaded ([`ModelLoading`]; `eager` unless asked).
     pub loading: ModelLoading,
+    /// Whether a contract-v2 variant with stage files runs in stages where the frame allows
+    /// ([`stages`]; on unless turned off: off, the whole graph per region, which the tests
+    /// compare with).
+    pub stages: bool,
 }
 
 /// When [`Engine::load`] loads the variants' networks.
@@ -122,6 +127,7 @@ impl EngineConfig {
             precision: Precision::Auto,
             io_binding: IoBinding::Auto,
             albedo_prefilter: AlbedoPrefilter::On,
+            stages: true,
             loading: ModelLoading::Eager,
         }
     }
@@ -237,6 +243,8 @@ pub struct Denoised {
     /// The factor the frame's radiance was scaled by before the networks (and the results by
     /// its inverse after): 1 unless its level was outside the training range ([`exposure`]).
     pub exposure: f32,
+    /// Whether the network ran in stages ([`stages`]).
+    pub staged: bool,
 }
 
 /// Samples (pixel × component) the firefly handling clamped, per component.
@@ -268,6 +276,7 @@ pub struct Engine {
     pool: rayon::ThreadPool,
     device: Device,
     albedo_prefilter: AlbedoPrefilter,
+    stages: bool,
 }
 
 impl Engine {
@@ -308,6 +317,7 @@ impl Engine {
             pool,
             device,
             albedo_prefilter: config.albedo_prefilter,
+            stages: config.stages,
         })
     }
 
@@ -460,19 +470,26 @@ impl Engine {
         let mut components = options.components.then(|| Components { diffuse: planes(), specular: planes() });
         let albedo = frame.planes(Buffer::Albedo);
         let mut scratch = Scratch::default();
+        let staged = match staged_network(model, self.stages, w, h, self.region_pixels) {
+            Some(net) => Some(stage_frame(net, &self.pool, frame, &stats, &tiles, &mut scratch, &mut timings)?),
+            None => None,
+        };
 
         for (index, core) in tiles.iter().enumerate() {
-            let region = expand(*core, plan.halo, w, h);
-            let [mut diffuse, mut specular] = run_region(
-                model,
-                &self.pool,
-                frame,
-                &stats,
-                Placement { region, core: *core, multiple: plan.multiple },
-                &mut scratch,
-                &mut timings,
-                true,
-            )?;
+            let [mut diffuse, mut specular] =
+                match (&staged, staged_network(model, self.stages, w, h, self.region_pixels)) {
+                    (Some(staged), Some(net)) => finish_staged(net, &self.pool, staged, index, &mut timings)?,
+                    _ => run_region(
+                        model,
+                        &self.pool,
+                        frame,
+                        &stats,
+                        Placement { region: expand(*core, plan.halo, w, h), core: *core, multiple: plan.multiple },
+                        &mut scratch,
+                        &mut timings,
+                        true,
+                    )?,
+                };
             let t = Instant::now();
             self.pool.install(|| finish_core(&mut diffuse, &mut specular, &albedo, *core, w));
             if exposure != 1.0 {
@@ -503,19 +520,29 @@ impl Engine {
             timings,
             fireflies: report,
             exposure,
+            staged: staged.is_some(),
         })
     }
 
     /// Time spent in ONNX Runtime alone on the regions [`Engine::denoise`] would run for
-    /// `frame` (preprocessing done beforehand and not counted, logits not consumed): the
-    /// inference floor the speed benchmark compares the engine with.
+    /// `frame` (preprocessing done beforehand and not counted, logits not consumed; in
+    /// stages, the stages [`Engine::denoise`] would run, with the reconstruction between
+    /// them not counted): the inference floor the speed benchmark compares the engine with.
     pub fn inference_only(&mut self, frame: &Frame, variant: Variant) -> Result<Duration, EngineError> {
         self.ensure_loaded(variant)?;
         let (model, plan) = plan(&mut self.models, [self.tile, self.tile_v2], self.region_pixels, variant, frame)?;
         let stats = FrameStats::of(frame);
         let mut timings = StageTimings::default();
         let mut scratch = Scratch::default();
-        for core in plan.cores(frame.width, frame.height) {
+        let cores = plan.cores(frame.width, frame.height);
+        if let Some(net) = staged_network(model, self.stages, frame.width, frame.height, self.region_pixels) {
+            let staged = stage_frame(net, &self.pool, frame, &stats, &cores, &mut scratch, &mut timings)?;
+            for index in 0..cores.len() {
+                finish_staged(net, &self.pool, &staged, index, &mut timings)?;
+            }
+            return Ok(timings.inference);
+        }
+        for core in cores {
             let region = expand(core, plan.halo, frame.width, frame.height);
             let at = Placement { region, core, multiple: plan.multiple };
             run_region(model, &self.pool, frame, &stats, at, &mut scratch, &mut timings, false)?;
@@ -892,6 +919,229 @@ fn run_region(
         }
     }
     Ok(out)
+}
+
+/// The multi-scale network of `model` when it runs a `w`×`h` frame in stages: it has stage
+/// files, `enabled`, and the frame's pooled level-0 features (half its padded size) fit in
+/// one region of `region_pixels` for the middle stage.
+fn staged_network(
+    model: &mut VariantModel,
+    enabled: bool,
+    w: usize,
+    h: usize,
+    region_pixels: usize,
+) -> Option<&mut model::MultiScaleNetwork> {
+    match &mut model.networks {
+        model::Networks::MultiScale(net) if enabled && net.stages.is_some() => {
+            let m = net.size_multiple;
+            let fits = (w.next_multiple_of(m) / 2) * (h.next_multiple_of(m) / 2) <= region_pixels;
+            fits.then_some(net)
+        }
+        _ => None,
+    }
+}
+
+/// A frame's work in stages up to its cores' level 0 ([`stages`]): per core, its region (the
+/// core and [`stages::MARGIN`] around it, inside the frame; padded to the size multiple) with
+/// the level-0 features and the preprocessed color `front` and the preprocessing gave there;
+/// for the frame (padded), decoder level 1's output and each component's `o_1`.
+struct StagedFrame {
+    regions: Vec<StagedRegion>,
+    /// The padded frame's size.
+    width: usize,
+    height: usize,
+    /// `[1][c1][height/2][width/2]`, as `middle` gave it.
+    decoder1: ort::value::DynValue,
+    /// The diffuse's and the specular's `o_1` ([`multiscale::coarse_levels`]), `[3][height/2][width/2]`.
+    coarse: [Vec<f32>; 2],
+}
+
+struct StagedRegion {
+    region: Rect,
+    core: Rect,
+    /// The padded region's size.
+    pw: usize,
+    ph: usize,
+    /// `[1][c][ph][pw]`, as `front` gave it (ONNX Runtime's memory).
+    level0: ort::value::DynValue,
+    /// The uncompressed diffuse and specular color, `[3][ph][pw]` each.
+    colors: [Vec<f32>; 2],
+}
+
+/// `rect` of the padded region a core's results cover in the padded frame: the core, and to
+/// the padded frame's edge where the core reaches the frame's.
+fn padded_core(core: Rect, region: Rect, pw: usize, ph: usize, w: usize, h: usize) -> Rect {
+    let x1 = if core.x + core.w == w { region.x + pw } else { core.x + core.w };
+    let y1 = if core.y + core.h == h { region.y + ph } else { core.y + core.h };
+    Rect { x: core.x, y: core.y, w: x1 - core.x, h: y1 - core.y }
+}
+
+/// Copies `rect` (frame coordinates) of `src`, the `[c][at.h][at.w]` planes of the area
+/// `at` of the frame, into the `[c][dh][dw]` planes `dst` of the whole frame.
+fn paste(src: &[f32], at: Rect, rect: Rect, dst: &mut [f32], dw: usize, dh: usize) {
+    let channels = src.len() / at.pixels();
+    for c in 0..channels {
+        for row in 0..rect.h {
+            let y = rect.y + row;
+            let from = &src[c * at.pixels() + (y - at.y) * at.w + rect.x - at.x..][..rect.w];
+            dst[c * dw * dh + y * dw + rect.x..][..rect.w].copy_from_slice(from);
+        }
+    }
+}
+
+/// The first two stages over `frame`: `front` per core, then `middle` over the frame's pooled
+/// features, and the coarse levels of the reconstruction over the frame.
+fn stage_frame(
+    net: &mut model::MultiScaleNetwork,
+    pool: &rayon::ThreadPool,
+    frame: &Frame,
+    stats: &FrameStats,
+    cores: &[Rect],
+    scratch: &mut Scratch,
+    timings: &mut StageTimings,
+) -> Result<StagedFrame, EngineError> {
+    let (w, h, m) = (frame.width, frame.height, net.size_multiple);
+    let (fw, fh) = (w.next_multiple_of(m), h.next_multiple_of(m));
+    let stages = net.stages.as_mut().expect("a staged network");
+    let c0 = stages.level0_channels;
+    let mut pooled = vec![0f32; c0 * (fw / 2) * (fh / 2)];
+    let mut color = [vec![0f32; 3 * fw * fh], vec![0f32; 3 * fw * fh]];
+    let mut regions = Vec::with_capacity(cores.len());
+    let engine_compresses = net.info.input_compression == InputCompression::Engine;
+    for &core in cores {
+        let t = Instant::now();
+        let region = expand(core, stages::MARGIN, w, h);
+        let mut inputs = std::mem::take(&mut scratch.inputs);
+        pool.install(|| preprocess::preprocess_into(frame, stats, net.info.features, region, &mut inputs));
+        let (pw, ph) = (region.w.next_multiple_of(m), region.h.next_multiple_of(m));
+        let mut diffuse = pad_planes(std::mem::take(&mut inputs.diffuse), region.w, region.h, pw, ph);
+        let mut specular = pad_planes(std::mem::take(&mut inputs.specular), region.w, region.h, pw, ph);
+        let mut features = pad_planes(std::mem::take(&mut inputs.features), region.w, region.h, pw, ph);
+        let colors = [diffuse[..3 * pw * ph].to_vec(), specular[..3 * pw * ph].to_vec()];
+        let target = padded_core(core, region, pw, ph, w, h);
+        let at = Rect { x: region.x, y: region.y, w: pw, h: ph };
+        for (whole, part) in color.iter_mut().zip(&colors) {
+            paste(part, at, target, whole, fw, fh);
+        }
+        if engine_compresses {
+            pool.install(|| {
+                for tensor in [&mut diffuse, &mut specular, &mut features] {
+                    compress::symlog_in_place(tensor);
+                }
+            });
+        }
+        timings.preprocess += t.elapsed();
+        let t = Instant::now();
+        let mut out = stages.front(&diffuse, &specular, &features, ph, pw)?;
+        let level0 = out.take("level0", [c0, ph, pw])?;
+        let half = |r: Rect| Rect { x: r.x / 2, y: r.y / 2, w: r.w / 2, h: r.h / 2 };
+        let part = out.get("pooled", [c0, ph / 2, pw / 2])?;
+        paste(part, half(at), half(target), &mut pooled, fw / 2, fh / 2);
+        drop(out);
+        timings.inference += t.elapsed();
+        scratch.inputs = preprocess::Inputs { rect: region, diffuse, specular, features };
+        regions.push(StagedRegion { region, core, pw, ph, level0, colors });
+    }
+    let t = Instant::now();
+    let (k, levels, linear) =
+        (net.info.kernel_size, net.info.levels, net.info.specular_pyramid == SpecularPyramid::Linear);
+    let detail_gains = net.info.detail_gains;
+    let c1 = stages.decoder1_channels;
+    let mut out = stages.middle(&pooled, fh / 2, fw / 2)?;
+    let decoder1 = out.take("decoder1", [c1, fh / 2, fw / 2])?;
+    let inference = t.elapsed();
+    let t = Instant::now();
+    let mut pyramids = [false, linear].map(|linear_means| multiscale::Pyramid {
+        kernel_size: k,
+        kernels: vec![&[][..]],
+        blends: vec![&[][..]],
+        gains: if detail_gains { vec![&[][..]] } else { Vec::new() },
+        linear_means,
+    });
+    fn halves(data: &[f32]) -> [&[f32]; 2] {
+        let (d, s) = data.split_at(data.len() / 2);
+        [d, s]
+    }
+    for l in 1..levels {
+        let (lw, lh) = (fw >> l, fh >> l);
+        for (p, half) in pyramids.iter_mut().zip(halves(out.get(&format!("kernel_{l}"), [2 * k * k, lh, lw])?)) {
+            p.kernels.push(half);
+        }
+        if l + 1 < levels {
+            for (p, half) in pyramids.iter_mut().zip(halves(out.get(&format!("blend_{l}"), [2, lh, lw])?)) {
+                p.blends.push(half);
+            }
+            if detail_gains {
+                for (p, half) in pyramids.iter_mut().zip(halves(out.get(&format!("gain_{l}"), [2, lh, lw])?)) {
+                    p.gains.push(half);
+                }
+            }
+        }
+    }
+    let [cd, cs] = &color;
+    let coarse = pool.install(|| {
+        rayon::join(
+            || multiscale::coarse_levels(&pyramids[0], cd, fw, fh),
+            || multiscale::coarse_levels(&pyramids[1], cs, fw, fh),
+        )
+    });
+    drop(out);
+    timings.reconstruction += t.elapsed();
+    timings.inference += inference;
+    Ok(StagedFrame { regions, width: fw, height: fh, decoder1, coarse: [coarse.0, coarse.1] })
+}
+
+/// The last stage for core `index` of a [`StagedFrame`]: `back` over its region, then level 0
+/// of the reconstruction over the core; the filtered diffuse and specular, `[3][core.h][core.w]` each.
+fn finish_staged(
+    net: &mut model::MultiScaleNetwork,
+    pool: &rayon::ThreadPool,
+    staged: &StagedFrame,
+    index: usize,
+    timings: &mut StageTimings,
+) -> Result<[Vec<f32>; 2], EngineError> {
+    let StagedRegion { region, core, pw, ph, level0, colors } = &staged.regions[index];
+    let (region, core, pw, ph) = (*region, *core, *pw, *ph);
+    let (fw, fh) = (staged.width, staged.height);
+    let half = Rect { x: region.x / 2, y: region.y / 2, w: pw / 2, h: ph / 2 };
+    let (k, detail_gains) = (net.info.kernel_size, net.info.detail_gains);
+    let stages = net.stages.as_mut().expect("a staged network");
+    let c1 = stages.decoder1_channels;
+    let t = Instant::now();
+    let mut decoder1 = vec![0f32; c1 * half.pixels()];
+    let whole = stages::tensor(&staged.decoder1, "middle", "decoder1", [c1, fh / 2, fw / 2])?;
+    crop(whole, fw / 2, fh / 2, half, &mut decoder1);
+    let out = stages.back(&decoder1, level0, ph, pw)?;
+    let kernel = out.get("kernel_0", [2 * k * k, ph, pw])?;
+    let blend = out.get("blend_0", [2, ph, pw])?;
+    let gain = if detail_gains { Some(out.get("gain_0", [2, ph, pw])?) } else { None };
+    timings.inference += t.elapsed();
+    let t = Instant::now();
+    let local = Rect { x: core.x - region.x, y: core.y - region.y, w: core.w, h: core.h };
+    let coarse = staged.coarse.each_ref().map(|c| {
+        let mut part = vec![0f32; 3 * half.pixels()];
+        crop(c, fw / 2, fh / 2, half, &mut part);
+        part
+    });
+    let (kd, ks) = kernel.split_at(kernel.len() / 2);
+    let (bd, bs) = blend.split_at(blend.len() / 2);
+    let (gd, gs) = match gain {
+        Some(g) => {
+            let (d, s) = g.split_at(g.len() / 2);
+            (Some(d), Some(s))
+        }
+        None => (None, None),
+    };
+    let mut out_planes = [vec![0f32; 3 * core.pixels()], vec![0f32; 3 * core.pixels()]];
+    let [od, os] = &mut out_planes;
+    pool.install(|| {
+        rayon::join(
+            || multiscale::finest(kd, bd, gd, k, &colors[0], pw, ph, &coarse[0], local, od),
+            || multiscale::finest(ks, bs, gs, k, &colors[1], pw, ph, &coarse[1], local, os),
+        )
+    });
+    timings.reconstruction += t.elapsed();
+    Ok(out_planes)
 }
 
 /// Copies `rect` of the `[c][h][w]` planes `src` into `[c][rect.h][rect.w]` `dst`.

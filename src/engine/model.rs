@@ -77,7 +77,7 @@ pub struct Network {
     pub info: ModelInfo,
 }
 
-fn model_error(path: &Path, reason: impl Into<String>) -> EngineError {
+pub(super) fn model_error(path: &Path, reason: impl Into<String>) -> EngineError {
     EngineError::Model { path: path.to_path_buf(), reason: reason.into() }
 }
 
@@ -196,9 +196,9 @@ fn openvino_properties(threads: usize) -> Result<Vec<(String, String)>, String> 
 }
 
 /// A model file opened in a session, with its metadata read.
-struct Opened {
-    session: Session,
-    path: PathBuf,
+pub(super) struct Opened {
+    pub(super) session: Session,
+    pub(super) path: PathBuf,
     meta: std::collections::HashMap<String, String>,
     /// SHA-256 of the file, hex.
     sha256: String,
@@ -206,7 +206,7 @@ struct Opened {
 
 /// What an [`Opened`] session is for.
 #[derive(Clone, Copy, PartialEq, Eq)]
-enum SessionUse {
+pub(super) enum SessionUse {
     /// Running the network: every graph optimization.
     Run,
     /// Only its metadata and its inputs' and outputs' names and shapes (a network that
@@ -215,7 +215,7 @@ enum SessionUse {
 }
 
 impl Opened {
-    fn open(
+    pub(super) fn open(
         env: &ort::environment::Environment,
         path: &Path,
         placement: Placement,
@@ -253,14 +253,14 @@ impl Opened {
         Ok(Opened { session, path: path.to_path_buf(), meta, sha256 })
     }
 
-    fn get(&self, key: &str) -> Result<&str, EngineError> {
+    pub(super) fn get(&self, key: &str) -> Result<&str, EngineError> {
         self.meta
             .get(key)
             .map(String::as_str)
             .ok_or_else(|| model_error(&self.path, format!("metadata `{key}` is missing")))
     }
 
-    fn expect(&self, key: &str, want: &str, hint: &str) -> Result<(), EngineError> {
+    pub(super) fn expect(&self, key: &str, want: &str, hint: &str) -> Result<(), EngineError> {
         let got = self.get(key)?;
         if got == want {
             Ok(())
@@ -400,6 +400,9 @@ pub struct MultiScaleNetwork {
     pub info: ModelInfo,
     /// Region sides must be multiples of this (2^(levels − 1)).
     pub size_multiple: usize,
+    /// The same network in three stages, where its directory has them and it runs on ONNX
+    /// Runtime's CPU provider with the engine's reconstruction ([`super::stages`]).
+    pub stages: Option<Box<super::stages::Stages>>,
 }
 
 /// What runs a [`MultiScaleNetwork`].
@@ -592,7 +595,7 @@ impl MultiScaleNetwork {
         } else {
             Runner::Ort { session: model.session, binding: None }
         };
-        Ok(MultiScaleNetwork { runner, info, size_multiple })
+        Ok(MultiScaleNetwork { runner, info, size_multiple, stages: None })
     }
 
     /// Runs the graph on one region (sides multiples of `size_multiple`; `diffuse` and
@@ -789,6 +792,18 @@ fn check_no_extra<'a>(
     }
 }
 
+/// The channel count of a float32 rank-4 graph input/output with a fixed channel dimension.
+pub(super) fn outlet_channels(path: &Path, outlet: &ort::value::Outlet) -> Result<usize, EngineError> {
+    let name = outlet.name();
+    match outlet.dtype() {
+        ValueType::Tensor { ty, shape, .. } if *ty == ort::value::TensorElementType::Float32 && shape.len() == 4 => {
+            usize::try_from(shape[1])
+                .map_err(|_| model_error(path, format!("`{name}` has no fixed channel count ({})", shape[1])))
+        }
+        other => Err(model_error(path, format!("`{name}` is {other:?}, expected a float32 tensor (N, C, H, W)"))),
+    }
+}
+
 /// Checks that a graph input/output exists, is float32, rank 4, with `channels` channels
 /// (or a dynamic channel dimension).
 fn check_outlet(path: &Path, outlets: &[ort::value::Outlet], name: &str, channels: usize) -> Result<(), EngineError> {
@@ -940,7 +955,11 @@ pub fn load_variant(
             (true, false) => recon,
             (false, _) => v2,
         };
-        let net = MultiScaleNetwork::load(env, &file, variant, placement)?;
+        let mut net = MultiScaleNetwork::load(env, &file, variant, placement)?;
+        // The stages serve the CPU provider in float32 with the engine's reconstruction.
+        if !in_graph && placement.device == Device::Cpu && !placement.io_binding.enabled() && levels_ok(&net) {
+            net.stages = super::stages::Stages::load(env, &net.info, placement)?.map(Box::new);
+        }
         if fp16 && net.info.precision != Precision::Fp16 {
             return Err(model_error(
                 &file,
@@ -979,6 +998,11 @@ pub fn load_variant(
         ));
     }
     Ok(VariantModel { variant, features: diffuse.info.features, networks: Networks::Pair { diffuse, specular } })
+}
+
+/// Whether a network has the levels the staged path reconstructs (at least two).
+fn levels_ok(net: &MultiScaleNetwork) -> bool {
+    net.info.levels >= 2 && net.info.outputs == Outputs::Kernels
 }
 
 /// Loads every variant under `dir` ([`find_variants`]), in name order.

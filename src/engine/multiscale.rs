@@ -74,6 +74,19 @@ pub fn reconstruct(p: &Pyramid, color: &[f32], w: usize, h: usize, core: Rect, o
         filter(p.kernels[0], color, w, h, k, core, out);
         return;
     }
+    let coarse = coarse_levels(p, color, w, h);
+    finest(p.kernels[0], p.blends[0], gain(0), k, color, w, h, &coarse, core, out);
+}
+
+/// `o_1` of one component over a whole region (`[3][h/2][w/2]`): the color pyramid and
+/// levels L−1 … 1 of [`reconstruct`]; level 0's logits are not read (the staged engine
+/// computes this over a whole frame before level 0's logits exist). Needs at least two
+/// levels.
+pub fn coarse_levels(p: &Pyramid, color: &[f32], w: usize, h: usize) -> Vec<f32> {
+    let levels = p.kernels.len();
+    let k = p.kernel_size;
+    let gain = |l: usize| p.gains.get(l).copied();
+    assert!(levels >= 2, "the coarse levels of a {levels}-level pyramid");
     // The color pyramid, levels 1 … L−1.
     let mut pyramid: Vec<Vec<f32>> = Vec::with_capacity(levels - 1);
     if p.linear_means {
@@ -104,14 +117,35 @@ pub fn reconstruct(p: &Pyramid, color: &[f32], w: usize, h: usize, core: Rect, o
         blend(&f, whole(wl, hl), &coarse, wl, hl, p.blends[l], gain(l), whole(wl, hl), &mut o);
         coarse = o;
     }
+    coarse
+}
+
+/// Level 0 of [`reconstruct`] over `core` (region coordinates): `kernel`, `blend` and
+/// `gain` are level 0's logits over the `w`×`h` region, `coarse` its `o_1`
+/// (`[3][h/2][w/2]`, [`coarse_levels`]). Reads the logits and the color only within a few
+/// pixels of the core.
+#[allow(clippy::too_many_arguments)]
+pub fn finest(
+    kernel: &[f32],
+    blend_logits: &[f32],
+    gain: Option<&[f32]>,
+    k: usize,
+    color: &[f32],
+    w: usize,
+    h: usize,
+    coarse: &[f32],
+    core: Rect,
+    out: &mut [f32],
+) {
+    assert_eq!(coarse.len(), 3 * (w / 2) * (h / 2), "o_1 does not cover the region");
     // Level 0, only where the core needs it: the coarse pixels its upsampling reads (one
     // beyond each side of the core's half) and the 2×2 blocks pooled into them.
     let (lo_x, hi_x) = ((core.x / 2).saturating_sub(1), ((core.x + core.w - 1) / 2 + 1).min(w / 2 - 1));
     let (lo_y, hi_y) = ((core.y / 2).saturating_sub(1), ((core.y + core.h - 1) / 2 + 1).min(h / 2 - 1));
     let span = Rect { x: 2 * lo_x, y: 2 * lo_y, w: 2 * (hi_x + 1 - lo_x), h: 2 * (hi_y + 1 - lo_y) };
     let mut f = vec![0f32; 3 * span.pixels()];
-    filter(p.kernels[0], color, w, h, k, span, &mut f);
-    blend(&f, span, &coarse, w, h, p.blends[0], gain(0), core, out);
+    filter(kernel, color, w, h, k, span, &mut f);
+    blend(&f, span, coarse, w, h, blend_logits, gain, core, out);
 }
 
 fn whole(w: usize, h: usize) -> Rect {

@@ -114,6 +114,7 @@ impl Denoiser for FakeDenoiser {
             timings: Default::default(),
             fireflies: Default::default(),
             exposure: 1.0,
+            staged: false,
         })
     }
 }

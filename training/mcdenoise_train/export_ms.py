@@ -24,6 +24,10 @@ quarter of ONNX Runtime's time for the default network, where the engine's prepr
 does it while the tensors are in cache. `--compression graph` keeps it in the graph (the
 form models had before the key existed, which the engine still runs).
 
+Beside each `model.onnx` the command writes the same network cut into the three stages the
+engine runs it in on the CPU (`front.onnx`, `middle.onnx`, `back.onnx`: `mcdenoise_train.stages`),
+where the shape has that cut.
+
 `--recon` also writes `<variant>/model-recon.onnx`: the same network with the multi-scale
 reconstruction in the graph (`mcdenoise.outputs` `filtered`: outputs `diffuse_filtered` and
 `specular_filtered` `[N,3,H,W]`, the filtered preprocessed colors), which the engine runs
@@ -58,6 +62,7 @@ from .export import read_metadata as read_metadata_v2
 from .export import write_model
 from .model import symlog
 from .msnet import MSNet, add_shape_arguments, from_arguments
+from .stages import write_stages
 
 CONTRACT = 2
 OPSET = 17
@@ -330,6 +335,7 @@ def main(argv=None) -> int:
         m = net if v == "full" else nocov_from_full(net)
         path = Path(a.out) / v / "model.onnx"
         export_onnx(m, path, v, compression=a.compression)
+        write_stages(path)
         if a.recon:
             export_recon(m, path.with_name(RECON_FILE), v)
             if a.fp16:
